@@ -1,0 +1,1 @@
+"""Command-line interface (thin click layer over the library API)."""

@@ -1,0 +1,1 @@
+"""Readers and writers for the file formats users have (PLY variants, posed-image datasets, our container)."""

@@ -1,0 +1,97 @@
+"""Rendering: EWA projection with the coverage gate (torch), then a compositing backend.
+
+Backends share one 2D interface (``Projected``): ``reference`` (pure torch, the oracle), ``cpu`` (numba kernels with
+analytic backward) and ``cuda`` (gsplat, when installed and a CUDA device is present). ``auto`` picks by device.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from ..errors import ProxycodecError
+from .project import GateConfig, Projected, project_gaussians
+from .reference import rasterize_reference
+
+BACKENDS = ("auto", "reference", "cpu", "cuda")
+
+
+@dataclass
+class RenderResult:
+    image: torch.Tensor  # [H, W, C]
+    alpha: torch.Tensor  # [H, W]
+    projected: Projected
+
+
+def available_backends() -> list[str]:
+    out = ["reference"]
+    try:
+        from . import cpu  # noqa: F401
+
+        out.append("cpu")
+    except ImportError:
+        pass
+    if torch.cuda.is_available():
+        try:
+            import gsplat  # noqa: F401
+
+            out.append("cuda")
+        except ImportError:
+            pass
+    return out
+
+
+def resolve_backend(backend: str, device: torch.device) -> str:
+    if backend not in BACKENDS:
+        raise ProxycodecError(f"unknown backend {backend!r}; choose from {', '.join(BACKENDS)}")
+    avail = available_backends()
+    if backend == "auto":
+        if device.type == "cuda" and "cuda" in avail:
+            return "cuda"
+        if device.type == "cpu" and "cpu" in avail:
+            return "cpu"
+        return "reference"
+    if backend not in avail:
+        raise ProxycodecError(f"backend {backend!r} is not available here (available: {', '.join(avail)})")
+    return backend
+
+
+def rasterize(proj: Projected, background: torch.Tensor, backend: str = "auto") -> tuple[torch.Tensor, torch.Tensor]:
+    """Composite a projected set of Gaussians -> (image [H, W, C], alpha [H, W])."""
+    name = resolve_backend(backend, proj.means2d.device)
+    args = (proj.means2d, proj.conics, proj.opacities, proj.colors, proj.depths, proj.extent,
+            proj.width, proj.height, background)
+    if name == "cpu":
+        from .cpu import rasterize_cpu
+
+        return rasterize_cpu(*args)
+    if name == "cuda":
+        from .cuda import rasterize_cuda
+
+        return rasterize_cuda(*args)
+    return rasterize_reference(*args)
+
+
+def render_gaussians(
+    means: torch.Tensor,
+    quats: torch.Tensor,
+    scales: torch.Tensor,
+    opacities: torch.Tensor,
+    colors: torch.Tensor,
+    camera,
+    *,
+    background=(1.0, 1.0, 1.0),
+    gate: GateConfig = GateConfig(),
+    backend: str = "auto",
+    near: float = 0.01,
+) -> RenderResult:
+    """Render explicit 3D Gaussians seen by ``camera`` (at the camera's own resolution)."""
+    bg = torch.as_tensor(background, dtype=means.dtype, device=means.device)
+    proj = project_gaussians(means, quats, scales, opacities, colors, camera, gate=gate, near=near)
+    image, alpha = rasterize(proj, bg, backend)
+    return RenderResult(image, alpha, proj)
+
+
+__all__ = ["GateConfig", "Projected", "RenderResult", "project_gaussians", "rasterize", "rasterize_reference",
+           "render_gaussians", "available_backends", "resolve_backend", "BACKENDS"]
