@@ -1,0 +1,143 @@
+"""An anchor scene together with the decoder that renders it: what ``fit`` writes and ``encode`` reads.
+
+On disk: the anchors as a Scaffold-GS PLY (``scene.ply``) plus our weights sidecar (``scene.weights.pxc``, a
+proxycodec container holding the MLP weights as raw float32 arrays and the configuration as JSON). A fresh process
+renders it with nothing else. Nothing is ever unpickled.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .camera import Camera, check_xi
+from .decoder import DecoderConfig, GaussianDecoder, NeuralGaussians, visible_anchors
+from .errors import ProxycodecError
+from .render import GateConfig, RenderResult, project_gaussians, rasterize
+from .scene import AnchorScene
+
+WEIGHTS_KIND = "proxycodec.weights"
+WEIGHTS_SUFFIX = ".weights.pxc"
+
+
+def weights_path_for(ply_path: str | os.PathLike) -> Path:
+    p = Path(ply_path)
+    return p.with_name(p.stem + WEIGHTS_SUFFIX)
+
+
+@dataclass
+class SceneRender(RenderResult):
+    gaussians: NeuralGaussians | None = None
+    visible_anchor_index: torch.Tensor | None = None
+
+
+def decode_view(scene: AnchorScene, decoder: GaussianDecoder, camera: Camera, xi: float,
+                features: torch.Tensor | None = None) -> tuple[NeuralGaussians, torch.Tensor]:
+    """Neural Gaussians of the anchors visible from ``camera`` (already at its render resolution).
+
+    ``features`` overrides the scene's features (stage 2 renders leaves with predicted ones). Returns the Gaussians
+    (``anchor_index`` into the full scene) and the visible anchor indices.
+    """
+    vis = visible_anchors(scene.positions.detach(), scene.extent_radius().detach(), camera)
+    feats = scene.features if features is None else features
+    _, _, center = camera.torch_params(scene.positions.device, scene.positions.dtype)
+    g = decoder(scene.positions[vis], feats[vis], scene.offsets[vis], scene.scalings[vis], center, xi)
+    g.anchor_index = vis[g.anchor_index]
+    return g, vis
+
+
+def render_scene(
+    scene: AnchorScene,
+    decoder: GaussianDecoder,
+    camera: Camera,
+    xi: float = 1.0,
+    *,
+    background=(1.0, 1.0, 1.0),
+    backend: str = "auto",
+    features: torch.Tensor | None = None,
+    gate: GateConfig | None = None,
+) -> SceneRender:
+    """Render ``scene`` from ``camera`` (given at its 100% reference size) at resolution ratio ``xi``."""
+    xi = check_xi(xi)
+    cam = camera.scaled(xi)
+    g, vis = decode_view(scene, decoder, cam, xi, features)
+    bg = torch.as_tensor(background, dtype=scene.positions.dtype, device=scene.positions.device)
+    proj = project_gaussians(g.means, g.quats, g.scales, g.opacities, g.colors, cam,
+                             gate=decoder.config.gate if gate is None else gate)
+    image, alpha = rasterize(proj, bg, backend)
+    return SceneRender(image=image, alpha=alpha, projected=proj, gaussians=g, visible_anchor_index=vis)
+
+
+@dataclass
+class SceneModel:
+    """Anchors + decoder (+ the cameras the scene was made with, when known)."""
+
+    scene: AnchorScene
+    decoder: GaussianDecoder
+    cameras: list[Camera] | None = None
+    background: tuple[float, float, float] = (1.0, 1.0, 1.0)
+
+    def render(self, camera: Camera, xi: float = 1.0, *, backend: str = "auto") -> SceneRender:
+        with torch.no_grad():
+            return render_scene(self.scene, self.decoder, camera, xi, background=self.background, backend=backend)
+
+    # ------------------------------------------------------------------ persistence
+    def save(self, ply_path: str | os.PathLike, extra_meta: dict | None = None) -> tuple[Path, Path]:
+        from .formats.container import write_container
+        from .formats.scaffold_ply import scaffold_ply_from_arrays, write_scaffold_ply
+
+        s = self.scene
+        write_scaffold_ply(ply_path, scaffold_ply_from_arrays(
+            s.positions.detach().cpu().numpy(), s.offsets.detach().cpu().numpy(),
+            s.features.detach().cpu().numpy(), s.scalings.detach().cpu().numpy()))
+        meta = {
+            "kind": WEIGHTS_KIND,
+            "decoder": self.decoder.config.to_json(),
+            "voxel_size": s.voxel_size,
+            "background": list(self.background),
+            "cameras": [c.to_json() for c in self.cameras] if self.cameras else [],
+            "scene": {k: v for k, v in s.metadata.items()},
+            **(extra_meta or {}),
+        }
+        wpath = weights_path_for(ply_path)
+        write_container(wpath, meta, self.decoder.state_arrays())
+        return Path(ply_path), wpath
+
+    @staticmethod
+    def load(ply_path: str | os.PathLike, weights_path: str | os.PathLike | None = None) -> "SceneModel":
+        from .formats.container import read_container
+        from .formats.scaffold_ply import read_scaffold_ply
+        from .scene import scene_from_scaffold_ply
+
+        ply_path = Path(ply_path)
+        wpath = Path(weights_path) if weights_path else weights_path_for(ply_path)
+        if not wpath.exists():
+            raise ProxycodecError(f"no decoder weights beside the anchor PLY (expected {wpath.name}); "
+                                  "Scaffold-GS's TorchScript MLPs are not loaded for safety", ply_path)
+        c = read_container(wpath)
+        if c.meta.get("kind") != WEIGHTS_KIND:
+            raise ProxycodecError(f"not a weights file (kind {c.meta.get('kind')!r})", wpath)
+        try:
+            cfg = DecoderConfig.from_json(c.meta["decoder"])
+            decoder = GaussianDecoder.from_arrays(cfg, c.arrays)
+            cams = [Camera.from_json(d) for d in c.meta.get("cameras", [])]
+            bg = tuple(float(x) for x in c.meta.get("background", (1, 1, 1)))
+            voxel = float(c.meta["voxel_size"])
+        except (KeyError, TypeError, ValueError) as e:
+            raise ProxycodecError(f"bad weights file: {e}", wpath) from None
+        scene = scene_from_scaffold_ply(read_scaffold_ply(ply_path), voxel, source=str(ply_path))
+        if scene.feat_dim != cfg.feat_dim or scene.n_offsets != cfg.n_offsets:
+            raise ProxycodecError(f"anchors have {scene.feat_dim} features x {scene.n_offsets} offsets but the "
+                                  f"decoder expects {cfg.feat_dim} x {cfg.n_offsets}", ply_path)
+        scene = AnchorScene(scene.positions, scene.features, scene.offsets, scene.scalings, voxel,
+                            dict(c.meta.get("scene", {})))
+        decoder.eval()
+        return SceneModel(scene, decoder, cams or None, bg)  # type: ignore[arg-type]
+
+
+def image_to_uint8(image: torch.Tensor) -> np.ndarray:
+    return (image.detach().clamp(0, 1).cpu().numpy() * 255.0 + 0.5).astype(np.uint8)
