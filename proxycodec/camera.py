@@ -34,7 +34,7 @@ def _as_matrix(m) -> np.ndarray:
     return m
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Camera:
     """A posed pinhole camera at its 100% reference resolution (``width`` x ``height`` pixels)."""
 
@@ -61,6 +61,15 @@ class Camera:
             raise ProxycodecError(f"camera {self.name!r}: image size {self.width}x{self.height} is empty")
         object.__setattr__(self, "width", int(self.width))
         object.__setattr__(self, "height", int(self.height))
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, Camera):
+            return NotImplemented
+        return (np.array_equal(self.world_to_camera, other.world_to_camera) and self.name == other.name
+                and (self.fx, self.fy, self.cx, self.cy, self.width, self.height)
+                == (other.fx, other.fy, other.cx, other.cy, other.width, other.height))
+
+    __hash__ = None  # type: ignore[assignment]
 
     # ------------------------------------------------------------------ geometry
     @property

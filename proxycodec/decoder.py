@@ -185,7 +185,7 @@ class GaussianDecoder(nn.Module):
                 raise ProxycodecError(f"decoder weight {k} has shape {a.shape}, expected {tuple(ref.shape)}")
             if not np.all(np.isfinite(a)):
                 raise ProxycodecError(f"decoder weight {k} contains NaN or Inf")
-            state[k] = torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32))
+            state[k] = torch.from_numpy(np.array(a, dtype=np.float32, copy=True))
         dec.load_state_dict(state)
         return dec
 

@@ -88,12 +88,12 @@ class SceneModel:
     # ------------------------------------------------------------------ persistence
     def save(self, ply_path: str | os.PathLike, extra_meta: dict | None = None) -> tuple[Path, Path]:
         from .formats.container import write_container
-        from .formats.scaffold_ply import scaffold_ply_from_arrays, write_scaffold_ply
+        from .formats.scaffold_ply import ScaffoldPly, write_scaffold_ply
 
         s = self.scene
-        write_scaffold_ply(ply_path, scaffold_ply_from_arrays(
-            s.positions.detach().cpu().numpy(), s.offsets.detach().cpu().numpy(),
-            s.features.detach().cpu().numpy(), s.scalings.detach().cpu().numpy()))
+        write_scaffold_ply(ply_path, ScaffoldPly(
+            positions=s.positions.detach().cpu().numpy(), offsets=s.offsets.detach().cpu().numpy(),
+            features=s.features.detach().cpu().numpy(), scalings=s.scalings.detach().cpu().numpy()))
         meta = {
             "kind": WEIGHTS_KIND,
             "decoder": self.decoder.config.to_json(),
@@ -114,6 +114,7 @@ class SceneModel:
         from .scene import scene_from_scaffold_ply
 
         ply_path = Path(ply_path)
+        ply = read_scaffold_ply(ply_path)  # the anchors' own problems first
         wpath = Path(weights_path) if weights_path else weights_path_for(ply_path)
         if not wpath.exists():
             raise ProxycodecError(f"no decoder weights beside the anchor PLY (expected {wpath.name}); "
@@ -129,7 +130,7 @@ class SceneModel:
             voxel = float(c.meta["voxel_size"])
         except (KeyError, TypeError, ValueError) as e:
             raise ProxycodecError(f"bad weights file: {e}", wpath) from None
-        scene = scene_from_scaffold_ply(read_scaffold_ply(ply_path), voxel, source=str(ply_path))
+        scene = scene_from_scaffold_ply(ply, voxel, source=str(ply_path))
         if scene.feat_dim != cfg.feat_dim or scene.n_offsets != cfg.n_offsets:
             raise ProxycodecError(f"anchors have {scene.feat_dim} features x {scene.n_offsets} offsets but the "
                                   f"decoder expects {cfg.feat_dim} x {cfg.n_offsets}", ply_path)

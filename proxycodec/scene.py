@@ -91,12 +91,12 @@ def scene_from_scaffold_ply(ply, voxel_size: float | None = None, source: str | 
     Scaffold-GS does not store the voxel size in the PLY; when not given, it is estimated as the most common
     spacing of the anchor grid (median 1-NN distance snapped to the grid step).
     """
-    pos = torch.from_numpy(np.ascontiguousarray(ply.positions, dtype=np.float32))
+    pos = torch.from_numpy(np.array(ply.positions, dtype=np.float32, copy=True))
     scene = AnchorScene(
         positions=pos,
-        features=torch.from_numpy(np.ascontiguousarray(ply.features, dtype=np.float32)),
-        offsets=torch.from_numpy(np.ascontiguousarray(ply.offsets, dtype=np.float32)),
-        scalings=torch.from_numpy(np.ascontiguousarray(ply.scalings, dtype=np.float32)),
+        features=torch.from_numpy(np.array(ply.features, dtype=np.float32, copy=True)),
+        offsets=torch.from_numpy(np.array(ply.offsets, dtype=np.float32, copy=True)),
+        scalings=torch.from_numpy(np.array(ply.scalings, dtype=np.float32, copy=True)),
         voxel_size=float(voxel_size) if voxel_size else estimate_voxel_size(pos),
     )
     return scene.validate(source)

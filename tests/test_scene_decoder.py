@@ -1,0 +1,128 @@
+"""Anchor scene validation, the neural Gaussian decoder, frustum culling and model persistence."""
+
+import subprocess
+import sys
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+
+import proxycodec.model as model_mod
+from proxycodec import ProxycodecError
+from proxycodec.camera import Camera
+from proxycodec.decoder import DecoderConfig, GaussianDecoder
+from proxycodec.model import SceneModel, render_scene
+from proxycodec.scene import AnchorScene
+
+
+def tiny_scene(m=200, seed=0, K=10, F=32):
+    g = torch.Generator().manual_seed(seed)
+    pos = torch.round((torch.rand(m, 3, generator=g) - 0.5) * 2 / 0.05) * 0.05
+    return AnchorScene(
+        positions=pos,
+        features=torch.randn(m, F, generator=g),
+        offsets=torch.randn(m, K, 3, generator=g) * 0.5,
+        scalings=torch.log(torch.full((m, 6), 0.05)),
+        voxel_size=0.05,
+    ).validate()
+
+
+def tiny_decoder(seed=0, **kw):
+    torch.manual_seed(seed)
+    dec = GaussianDecoder(DecoderConfig(**kw))
+    with torch.no_grad():  # make most Gaussians visible
+        dec.mlp_opacity[2].bias.fill_(1.0)
+    return dec.eval()
+
+
+CAM = Camera.look_at([0.0, -3.0, 1.0], [0, 0, 0], width=40, height=32)
+
+
+def test_validate_rejects_bad_scenes():
+    s = tiny_scene(5)
+    with pytest.raises(ProxycodecError, match="NaN"):
+        replace(s, features=s.features.clone().fill_(float("nan"))).validate()
+    with pytest.raises(ProxycodecError, match="shape"):
+        replace(s, scalings=s.scalings[:, :5]).validate()
+    with pytest.raises(ProxycodecError, match="voxel"):
+        replace(s, voxel_size=0.0).validate()
+    assert tiny_scene(0).validate().num_anchors == 0
+
+
+def test_film_starts_as_identity_and_depends_on_resolution_once_trained():
+    s = tiny_scene(30)
+    dec = tiny_decoder()
+    assert torch.equal(dec.embed(s.positions, s.features, 0.1), s.features)
+    with torch.no_grad():
+        dec.mlp_embed[2].weight.normal_()
+    a, b = dec.embed(s.positions, s.features, 0.1), dec.embed(s.positions, s.features, 1.0)
+    assert not torch.allclose(a, b)
+    none = tiny_decoder(embedding="none")
+    assert not hasattr(none, "mlp_embed")
+    add = tiny_decoder(embedding="additive")
+    assert add.mlp_embed[2].out_features == 32
+
+
+def test_frustum_culling_changes_nothing_but_the_work(monkeypatch):
+    s, dec = tiny_scene(300), tiny_decoder()
+    cam = Camera.look_at([0.4, -1.5, 0.3], [0.4, 0, 0.3], width=40, height=32, fov_x_deg=30)
+    with torch.no_grad():
+        culled = render_scene(s, dec, cam, 1.0, backend="reference")
+        monkeypatch.setattr(model_mod, "visible_anchors", lambda pos, r, c, near=0.01: torch.arange(pos.shape[0]))
+        full = render_scene(s, dec, cam, 1.0, backend="reference")
+    assert culled.visible_anchor_index.numel() < s.num_anchors // 2  # most anchors never reach the MLPs
+    assert torch.allclose(culled.image, full.image, atol=1e-6)
+
+
+def test_anchors_with_no_visible_gaussians_and_empty_scene():
+    s, dec = tiny_scene(50), tiny_decoder()
+    with torch.no_grad():
+        dec.mlp_opacity[2].bias.fill_(-10.0)  # every opacity <= 0: all Gaussians dropped
+    r = render_scene(s, dec, CAM, 1.0, background=(0.0, 0.5, 1.0), backend="reference")
+    assert r.gaussians.count == 0 and torch.allclose(r.image, torch.tensor([0.0, 0.5, 1.0]).expand_as(r.image))
+    e = render_scene(tiny_scene(0), tiny_decoder(), CAM, 0.5, backend="reference")
+    assert torch.isfinite(e.image).all() and e.gaussians.count == 0
+
+
+@pytest.mark.parametrize("xi", [0.025, 0.1, 1.0, 2.0])
+def test_render_any_resolution_is_finite_with_gradients(xi):
+    s, dec = tiny_scene(120), tiny_decoder()
+    feats = s.features.clone().requires_grad_(True)
+    r = render_scene(s, dec, CAM, xi, features=feats, backend="reference")
+    assert r.image.shape[:2] == (max(1, round(32 * xi)), max(1, round(40 * xi)))
+    assert torch.isfinite(r.image).all()
+    r.image.mean().backward()
+    assert torch.isfinite(feats.grad).all()
+    assert any(torch.isfinite(p.grad).all() for p in dec.parameters() if p.grad is not None)
+
+
+def test_resolution_outside_range_is_a_user_error():
+    with pytest.raises(ProxycodecError, match="outside"):
+        render_scene(tiny_scene(3), tiny_decoder(), CAM, 3.0)
+
+
+def test_save_load_round_trip_in_a_fresh_process(tmp_path):
+    m = SceneModel(tiny_scene(80), tiny_decoder(), [CAM], (0.0, 0.0, 0.0))
+    ply, w = m.save(tmp_path / "s.ply")
+    back = SceneModel.load(ply)
+    for k in ("positions", "features", "offsets", "scalings"):
+        assert torch.equal(getattr(back.scene, k), getattr(m.scene, k))
+    for (k, a), (_, b) in zip(m.decoder.state_dict().items(), back.decoder.state_dict().items()):
+        assert torch.equal(a, b), k
+    assert back.cameras[0] == CAM and back.background == (0.0, 0.0, 0.0)
+    img = m.render(CAM, 0.5, backend="reference").image
+    np.save(tmp_path / "expected.npy", img.numpy())
+    code = (
+        "import numpy as np, sys; from proxycodec.model import SceneModel; "
+        f"m = SceneModel.load({str(ply)!r}); img = m.render(m.cameras[0], 0.5, backend='reference').image.numpy(); "
+        f"sys.exit(0 if np.array_equal(img, np.load({str(tmp_path / 'expected.npy')!r})) else 1)"
+    )
+    assert subprocess.run([sys.executable, "-c", code]).returncode == 0
+
+
+def test_missing_weights_sidecar_is_a_clear_error(tmp_path):
+    ply, w = SceneModel(tiny_scene(4), tiny_decoder()).save(tmp_path / "a.ply")
+    w.unlink()
+    with pytest.raises(ProxycodecError, match="weights"):
+        SceneModel.load(ply)
