@@ -74,17 +74,21 @@ class DecoderConfig:
 
 @dataclass
 class NeuralGaussians:
-    means: torch.Tensor  # [N, 3]
+    means: torch.Tensor  # [N, 3] relative to ``origin`` (world axes)
     quats: torch.Tensor  # [N, 4]
     scales: torch.Tensor  # [N, 3]
     opacities: torch.Tensor  # [N] in (0, 1]
     colors: torch.Tensor  # [N, 3]
     anchor_index: torch.Tensor  # [N] index into the anchors given to the decoder
     slot: torch.Tensor  # [N] which of the K offsets
+    origin: torch.Tensor  # [3] world point the means are relative to (the camera centre)
 
     @property
     def count(self) -> int:
         return int(self.means.shape[0])
+
+    def world_means(self) -> torch.Tensor:
+        return self.means + self.origin
 
 
 def positional_encoding(x: torch.Tensor, n_freqs: int) -> torch.Tensor:
@@ -160,11 +164,13 @@ class GaussianDecoder(nn.Module):
         color = torch.sigmoid(self.mlp_color(x)).reshape(-1, K, 3)
         sc = torch.exp(scalings[live])  # [m, 6]
         scales = sc[:, None, 3:] * torch.sigmoid(cov[..., :3])
-        means = positions[live][:, None, :] + offsets[live] * sc[:, None, :3]
+        # Centres relative to the camera (float32 keeps its precision far from the world origin).
+        means = view[live][:, None, :] + offsets[live] * sc[:, None, :3]
         a_idx, slot = mask.nonzero(as_tuple=True)
         return NeuralGaussians(
             means=means[a_idx, slot], quats=cov[a_idx, slot, 3:], scales=scales[a_idx, slot],
             opacities=opacity[a_idx, slot], colors=color[a_idx, slot], anchor_index=live[a_idx], slot=slot,
+            origin=camera_center.detach(),
         )
 
     # -------------------------------------------------------------- persistence (raw arrays + JSON, no pickle)

@@ -67,7 +67,7 @@ def render_scene(
     g, vis = decode_view(scene, decoder, cam, xi, features)
     bg = torch.as_tensor(background, dtype=scene.positions.dtype, device=scene.positions.device)
     proj = project_gaussians(g.means, g.quats, g.scales, g.opacities, g.colors, cam,
-                             gate=decoder.config.gate if gate is None else gate)
+                             gate=decoder.config.gate if gate is None else gate, origin=g.origin)
     image, alpha = rasterize(proj, bg, backend)
     return SceneRender(image=image, alpha=alpha, projected=proj, gaussians=g, visible_anchor_index=vis)
 

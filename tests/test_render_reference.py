@@ -125,3 +125,15 @@ def test_gate_dims_sub_pixel_gaussians_at_low_resolution():
     hi = project_gaussians(m, q, s, torch.ones(1), torch.ones(1, 3), cam)
     lo = project_gaussians(m, q, s, torch.ones(1), torch.ones(1, 3), cam.scaled(0.05))
     assert float(hi.gate[0]) > 0.99 and float(lo.gate[0]) < 0.3
+
+
+def test_far_from_the_origin_float32_matches_float64():
+    """Coordinates of 1e5 with centimetre Gaussians: camera-relative projection keeps float32 exact enough."""
+    off = torch.tensor([1e5, -2e5, 3e4], dtype=torch.float64)
+    m, q, s, o, c = random_gaussians(200, 5, spread=0.3, log_scale=-4.0)
+    cam = Camera.look_at((off + torch.tensor([0.0, -2.0, 0.5])).numpy(), off.numpy(), width=48, height=40)
+    m32 = (m + off).float()
+    ref = project_gaussians(m32.double(), q, s, o, c, cam)
+    p32 = project_gaussians(m32, q.float(), s.float(), o.float(), c.float(), cam)
+    assert torch.equal(p32.index, ref.index)
+    assert (p32.means2d.double() - ref.means2d).abs().max() < 1e-3  # pixels

@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 
 #: 3DGS's low-pass dilation of the projected covariance (pixels^2).
@@ -107,14 +108,23 @@ def project_gaussians(
     gate: GateConfig = GateConfig(),
     near: float = 0.01,
     far: float = 1e10,
+    origin=None,
 ) -> Projected:
+    """``means`` are world positions, or positions relative to ``origin`` (world axes) when it is given.
+
+    Points are moved into camera coordinates as ``(means - (c - origin)) @ R^T`` with the camera centre ``c``
+    subtracted first (in float64 for the offset), not ``R p + t``: at coordinates of 1e5 in float32 the latter loses
+    about 2 cm to cancellation, the former nothing beyond the inputs' own rounding.
+    """
     dev, dt = means.device, means.dtype
     W, H = camera.width, camera.height
     fx, fy, cx, cy = camera.fx, camera.fy, camera.cx, camera.cy
-    R, t, _ = camera.torch_params(dev, dt)
+    R = torch.as_tensor(camera.rotation, dtype=dt, device=dev)
+    shift = camera.center - (np.zeros(3) if origin is None else torch.as_tensor(origin).detach().double().cpu().numpy())
+    shift_t = torch.as_tensor(shift, dtype=dt, device=dev)
 
     # Cheap culls first, on centres only: depth, then opacity (gate <= 1, so alpha < 1/255 can never show).
-    p_cam = means @ R.T + t  # [N, 3]
+    p_cam = (means - shift_t) @ R.T  # [N, 3]
     z = p_cam[:, 2]
     keep = (z > near) & (z < far) & (opacities >= ALPHA_MIN) & torch.isfinite(p_cam).all(-1)
     idx = keep.nonzero().squeeze(1)
