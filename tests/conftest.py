@@ -1,0 +1,31 @@
+"""Shared test helpers.
+
+Real public data sit in ``../shared/data`` relative to the repository root (see shared/data/README.md).
+Tests that need it use the ``shared_data`` fixture or :func:`shared_data_path`, which skip with a clear
+reason when the folder (or the scene) is absent.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+SHARED_DATA = REPO_ROOT.parent / "shared" / "data"
+
+
+def shared_data_path(*parts: str) -> Path:
+    """``../shared/data/<parts>``, or skip the calling test when it is absent."""
+    if not SHARED_DATA.is_dir():
+        pytest.skip(f"real test data not available: {SHARED_DATA} is absent (see shared/data/README.md)")
+    p = SHARED_DATA.joinpath(*parts)
+    if not p.exists():
+        pytest.skip(f"real test data not available: {p} is absent")
+    return p
+
+
+@pytest.fixture
+def shared_data() -> Path:
+    """The ``../shared/data`` folder; skips the test when it is absent."""
+    return shared_data_path()
