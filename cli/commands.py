@@ -15,21 +15,52 @@ from .main import cli, parse_resolutions, render_views, user_errors
 @click.option("-o", "--out", "out_dir", type=click.Path(file_okay=False), default="proxycodec-demo", show_default=True)
 @click.option("--res", "res", default="1.0,0.3,0.1", show_default=True, help="Resolution ratios to render.")
 @click.option("--backend", default="auto", show_default=True, type=click.Choice(["auto", "reference", "cpu", "cuda"]))
+@click.option("--predictor-iters", default=2000, show_default=True, type=int, help="Predictor fitting iterations.")
 @user_errors
-def demo(out_dir: str, res: str, backend: str) -> None:
-    """Run the main job on the built-in scene: build it, save it, render it at several resolutions."""
+def demo(out_dir: str, res: str, backend: str, predictor_iters: int) -> None:
+    """Run the whole pipeline on the built-in scene: build and save it, encode it to a proxy-anchor container,
+    print its stats, decode it and render original and decoded views at several resolutions, side by side."""
+    from .. import codec
+    from ..metrics import psnr
     from ..model import SceneModel
     from ..sample import sample_model
     from .sheets import contact_sheet
 
     out = Path(out_dir)
+    resolutions = parse_resolutions(res)
     t0 = time.perf_counter()
     model = sample_model()
     ply, weights = model.save(out / "sample.ply")
     click.echo(f"built the sample scene: {model.scene.num_anchors} anchors in {time.perf_counter() - t0:.1f} s "
                f"-> {ply} ({ply.stat().st_size:,} B) + {weights.name} ({weights.stat().st_size:,} B)")
-    model = SceneModel.load(ply)  # what a user would do: render from the files alone
-    rows = render_views(model, parse_resolutions(res), out / "renders", [0, 3], backend)
-    sheet = contact_sheet([r["path"] for r in rows], out / "contact_sheet.png", columns=len(parse_resolutions(res)))
-    (out / "demo.json").write_text(json.dumps(rows, indent=2))
-    click.echo(f"contact sheet -> {sheet}")
+    model = SceneModel.load(ply)  # what a user would do: work from the files alone
+    report = codec.encode(ply, out / "sample.pxc", predictor_iters=predictor_iters,
+                          progress=lambda m: click.echo(m, err=True))
+    s = codec.stats(report.path)
+    click.echo(f"encoded -> {report.path}: {s['file_bytes']:,} B, {s['bits_per_anchor']:.1f} bits/anchor, "
+               f"{s['ratio']:.1f}x smaller than PLY + weights; sections: "
+               + ", ".join(f"{k} {v:,} B" for k, v in s["bytes_by_group"].items()))
+    t0 = time.perf_counter()
+    decoded = codec.decode(report.path)
+    click.echo(f"decoded {decoded.scene.num_anchors} anchors (leaves regenerated) in {time.perf_counter() - t0:.2f} s")
+    decoded.cameras = model.cameras
+    rows = render_views(model, resolutions, out / "renders", [0, 3], backend, prefix="original_")
+    rows_d = render_views(decoded, resolutions, out / "renders", [0, 3], backend, prefix="decoded_")
+    from PIL import Image
+    import numpy as np
+
+    for a, b in zip(rows, rows_d):
+        b["psnr_vs_original"] = psnr(np.asarray(Image.open(b["path"]), np.float32) / 255.0,
+                                     np.asarray(Image.open(a["path"]), np.float32) / 255.0)
+        click.echo(f"view {b['view']}  xi {b['xi']:5.3f}  decoded vs original PSNR {b['psnr_vs_original']:.2f} dB")
+    paths = []
+    for i in range(0, len(rows), len(resolutions)):  # per view: a row of originals, then a row of decoded
+        paths += [r["path"] for r in rows[i:i + len(resolutions)]] + [r["path"] for r in rows_d[i:i + len(resolutions)]]
+    sheet = contact_sheet(paths, out / "contact_sheet.png", columns=len(resolutions))
+    (out / "demo.json").write_text(json.dumps({"encode": report.to_json(), "original": rows, "decoded": rows_d},
+                                              indent=2))
+    click.echo(f"contact sheet (rows: original, decoded per view) -> {sheet}")
+
+
+from . import codec  # noqa
+from . import fit  # noqa

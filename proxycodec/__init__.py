@@ -1,7 +1,29 @@
-"""proxycodec: a compression codec for anchor-based 3D Gaussian Splatting scenes (compact proxy anchors)."""
+"""proxycodec: a compression codec for anchor-based 3D Gaussian Splatting scenes (compact proxy anchors).
+
+The Python API mirrors the CLI::
+
+    import proxycodec
+    report = proxycodec.encode("scene.ply", "scene.pxc")       # proxies + predictor + quantisation -> container
+    model = proxycodec.decode("scene.pxc")                      # leaves regenerated -> SceneModel
+    renders = proxycodec.render("scene.pxc", xi=0.3)            # one RenderResult per stored camera
+    info = proxycodec.stats("scene.pxc")                        # what is inside and what it costs
+
+The heavy modules (torch) load on first use, so ``import proxycodec`` and ``proxycodec --help`` stay fast.
+"""
 
 __version__ = "0.1.0"
 
 from .errors import ProxycodecError  # noqa: E402
 
-__all__ = ["ProxycodecError", "__version__"]
+_LAZY = {"encode": "codec", "decode": "codec", "load": "codec", "render": "codec", "stats": "codec"}
+
+
+def __getattr__(name):
+    if name in _LAZY:
+        import importlib
+
+        return getattr(importlib.import_module(f".{_LAZY[name]}", __name__), name)
+    raise AttributeError(f"module 'proxycodec' has no attribute {name!r}")
+
+
+__all__ = ["ProxycodecError", "__version__", "encode", "decode", "load", "render", "stats"]

@@ -71,3 +71,11 @@ def test_atomic_write_leaves_nothing_on_failure(tmp_path):
     with atomic_write(target) as fh:
         fh.write(b"new")
     assert target.read_bytes() == b"new" and sorted(os.listdir(tmp_path)) == ["out.bin"]
+
+
+def test_atomic_write_gives_the_usual_file_mode(tmp_path):
+    with atomic_write(tmp_path / "f") as fh:
+        fh.write(b"x")
+    mask = os.umask(0)
+    os.umask(mask)
+    assert (tmp_path / "f").stat().st_mode & 0o777 == 0o666 & ~mask

@@ -1,0 +1,164 @@
+"""``encode``, ``decode`` and ``stats``: the codec's commands (a thin layer over ``proxycodec.codec``)."""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import click
+
+from ..errors import ProxycodecError
+from .main import cli, parse_resolutions, render_views, user_errors
+
+
+def _stderr(msg: str) -> None:
+    click.echo(msg, err=True)
+
+
+@cli.command()
+@click.argument("scene", type=click.Path(dir_okay=False))
+@click.option("-o", "--out", "out", type=click.Path(dir_okay=False), default=None,
+              help="Output container (default: SCENE with suffix .pxc).")
+@click.option("--weights", type=click.Path(dir_okay=False), default=None,
+              help="Decoder weights (default: SCENE.weights.pxc beside the PLY).")
+@click.option("--proxy-ratio", default=0.3, show_default=True, type=float, help="rho: share of proxies per cell.")
+@click.option("--cell-size", default=None, type=float,
+              help="Proxy-selection cell size in world units (default: a voxel multiple giving ~10 anchors/cell).")
+@click.option("--feature-bits", default=8, show_default=True, type=int, help="Proxy features (1-16, 32 = float).")
+@click.option("--offset-bits", default=6, show_default=True, type=int, help="Offsets (1-16, 32 = float).")
+@click.option("--scaling-bits", default=8, show_default=True, type=int, help="Scalings (1-16, 32 = float).")
+@click.option("--weights-dtype", default="f16", show_default=True, type=click.Choice(["f16", "f32"]),
+              help="MLP weights precision.")
+@click.option("--predict-offsets/--store-offsets", default=False, show_default=True,
+              help="Predict leaf offsets too instead of storing them.")
+@click.option("--predictor-iters", default=2000, show_default=True, type=int)
+@click.option("--zstd-level", default=19, show_default=True, type=int)
+@click.option("--seed", default=0, show_default=True, type=int)
+@click.option("--images", type=click.Path(), default=None,
+              help="Dataset for a rendering loss while fitting the predictor (not implemented yet).")
+@click.option("--refit-predictor", is_flag=True,
+              help="Ignore a stage-2 predictor/proxy split stored by `fit`; select proxies and fit anew.")
+@click.option("--json", "as_json", is_flag=True, help="Print the encode report as JSON on stdout.")
+@user_errors
+def encode(scene, out, weights, proxy_ratio, cell_size, feature_bits, offset_bits, scaling_bits, weights_dtype,
+           predict_offsets, predictor_iters, zstd_level, seed, images, refit_predictor, as_json) -> None:
+    """Compress an anchor scene (Scaffold-GS PLY + weights sidecar) to a proxy-anchor container."""
+    from .. import codec
+
+    out = out or str(Path(scene).with_suffix(".pxc"))
+    source = (scene, weights) if weights else scene
+    r = codec.encode(source, out, proxy_ratio=proxy_ratio, cell_size=cell_size, feature_bits=feature_bits,
+                     offset_bits=offset_bits, scaling_bits=scaling_bits, weights_dtype=weights_dtype,
+                     predict_offsets=predict_offsets, predictor_iters=predictor_iters, zstd_level=zstd_level,
+                     seed=seed, images=images, use_fitted=not refit_predictor, progress=_stderr)
+    if as_json:
+        click.echo(json.dumps(r.to_json(), indent=2))
+    else:
+        ratio = f", {r.ratio:.1f}x smaller than PLY + weights" if r.ratio else ""
+        click.echo(f"wrote {r.path}: {r.file_bytes:,} B for {r.anchors} anchors ({r.proxies} proxies){ratio} "
+                   f"in {r.seconds['total']:.1f} s")
+
+
+def load_cameras(spec: str):
+    """Cameras from a cameras.json (a list of camera records, or {"cameras": [...]}) or a dataset folder."""
+    from ..camera import Camera
+
+    p = Path(spec)
+    if p.is_dir():
+        from ..formats.datasets import load_dataset
+
+        return list(load_dataset(p).cameras)
+    try:
+        data = json.loads(p.read_text())
+    except FileNotFoundError:
+        raise ProxycodecError("no such cameras file or dataset folder", p) from None
+    except (UnicodeDecodeError, ValueError) as e:
+        raise ProxycodecError(f"cameras file is not valid JSON ({e})", p) from None
+    if isinstance(data, dict):
+        data = data.get("cameras")
+    if not isinstance(data, list) or not data:
+        raise ProxycodecError("cameras file must hold a non-empty list of cameras", p)
+    try:
+        return [Camera.from_json(d) for d in data]
+    except ProxycodecError as e:
+        raise ProxycodecError(e.reason, p) from None
+    except AttributeError:
+        raise ProxycodecError("each camera must be a JSON object", p) from None
+
+
+@cli.command()
+@click.argument("container", type=click.Path(dir_okay=False))
+@click.option("--res", "res", default="1.0", show_default=True,
+              help="Comma-separated resolution ratios in [0.025, 2.0].")
+@click.option("--cameras", "cameras", type=click.Path(), default=None,
+              help="A dataset folder or cameras.json (default: the stored cameras, else an orbit).")
+@click.option("-o", "--out", "out_dir", type=click.Path(file_okay=False), default=None,
+              help="Folder for the PNGs (default: CONTAINER without suffix + _renders).")
+@click.option("--view", "views", multiple=True, type=int, help="Camera index (repeatable; default: all).")
+@click.option("--no-render", is_flag=True, help="Only decode (and write --ply); render nothing.")
+@click.option("--ply", "ply", type=click.Path(dir_okay=False), default=None,
+              help="Also write the decoded Gaussians as a standard INRIA 3DGS PLY.")
+@click.option("--ply-res", default=1.0, show_default=True, type=float, help="Resolution ratio the PLY is decoded for.")
+@click.option("--ply-view", default=0, show_default=True, type=int, help="Camera the PLY is decoded for.")
+@click.option("--backend", default="auto", show_default=True,
+              type=click.Choice(["auto", "reference", "cpu", "cuda"]), help="Compositing backend.")
+@user_errors
+def decode(container, res, cameras, out_dir, views, no_render, ply, ply_res, ply_view, backend) -> None:
+    """Decode a container (leaves regenerated) and render it at any resolution; optionally export a 3DGS PLY."""
+    from .. import codec
+    from ..camera import check_xi
+
+    resolutions = parse_resolutions(res)
+    check_xi(ply_res)
+    t0 = time.perf_counter()
+    model = codec.decode(container)
+    _stderr(f"decoded {model.scene.num_anchors} anchors in {time.perf_counter() - t0:.2f} s")
+    cams = load_cameras(cameras) if cameras else codec.default_cameras(model)
+    model.cameras = cams
+    if ply:
+        if not 0 <= ply_view < len(cams):
+            raise ProxycodecError(f"--ply-view {ply_view} does not exist ({len(cams)} cameras)")
+        n = codec.write_gaussian_ply(ply, codec.export_gaussians(model, cams[ply_view], ply_res))
+        click.echo(f"wrote {ply}: {n} Gaussians decoded for view {ply_view} at xi {ply_res:g} "
+                   "(colours baked for that view; ungated opacity)")
+    if not no_render:
+        out = Path(out_dir) if out_dir else Path(container).with_suffix("").with_name(
+            Path(container).stem + "_renders")
+        render_views(model, resolutions, out, list(views) or None, backend)
+
+
+@cli.command()
+@click.argument("file", type=click.Path(dir_okay=False))
+@click.option("--json", "as_json", is_flag=True, help="Everything as JSON (metadata included).")
+@user_errors
+def stats(file, as_json) -> None:
+    """Sizes and counts of a container or an anchor PLY."""
+    from .. import codec
+
+    s = codec.stats(file)
+    if as_json:
+        click.echo(json.dumps(s, indent=2))
+        return
+    if s["type"] == "ply":
+        click.echo(f"{s['file']}: Scaffold-GS anchor PLY, {s['anchors']} anchors")
+        click.echo(f"  PLY {s['file_bytes']:,} B + weights {s['weights_bytes'] or 0:,} B = {s['total_bytes']:,} B "
+                   f"({s['bits_per_anchor']:.0f} bits/anchor)" if s["anchors"] else "  empty")
+        for k, v in s["raw_bytes_by_group"].items():
+            click.echo(f"  {k:10s} {v:12,} B")
+        return
+    click.echo(f"{s['file']}: proxycodec container v{s['format_version']}, kind {s['kind']}, "
+               f"{s['file_bytes']:,} B")
+    if s.get("anchors") is not None and s["kind"] == "proxycodec.scene":
+        ratio = f", {s['ratio']:.1f}x smaller than PLY + weights ({s['source_bytes']:,} B)" if s["ratio"] else ""
+        click.echo(f"  {s['anchors']} anchors = {s['proxies']} proxies + {s['leaves']} leaves; "
+                   f"{s['bits_per_anchor']:.1f} bits/anchor{ratio}")
+        p = s.get("proxy") or {}
+        click.echo(f"  positions {s['positions']}, offsets {s['offsets']}, bits {s['quant_bits']}, "
+                   f"weights {s['weights_dtype']}, cell {p.get('cell_size_voxels', 0):g} voxels, seed {p.get('seed')}")
+    click.echo(f"  {'section':34s} {'dtype':>6s} {'shape':>14s} {'stored':>10s} {'raw':>10s}")
+    click.echo(f"  {'(header + table of contents)':34s} {'':>6s} {'':>14s} {s['header_and_toc_bytes']:10,}")
+    for sec in s["sections"]:
+        shape = "x".join(map(str, sec["shape"]))
+        click.echo(f"  {sec['name']:34s} {sec['dtype']:>6s} {shape:>14s} {sec['stored_bytes']:10,} "
+                   f"{sec['raw_bytes']:10,}")

@@ -1,0 +1,740 @@
+"""The scene codec: anchor scene + decoder -> compact proxy-anchor container (``.pxc``, scene format v1) and back.
+
+``encode`` keeps ~30% of the anchors as proxies (density-aware, ``proxy.select_proxies``), fits the residual
+predictor to the scene's own leaves, quantises the per-anchor attributes, and writes one zstd section per attribute
+(``formats/container.py``). ``decode`` regenerates the leaf features from the proxies. Byte layout and every section:
+``formats/CONTAINER.md``.
+
+Exactness contract: ``decode(path)`` returns bit-for-bit the model that ``encode`` reports as ``report.model`` (both
+go through ``_model_from_sections``): positions exactly as given when they lie on a voxel grid, other stored arrays
+equal to their dequantised values, leaf features from the same predictor with the same (rounded) weights.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import tempfile
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+import torch
+
+from .camera import Camera, orbit_cameras
+from .decoder import DecoderConfig, GaussianDecoder
+from .errors import ProxycodecError
+from .formats.container import (
+    MAGIC, ContainerError, SectionInfo, read_container, read_header, write_container,
+)
+from .model import SceneModel, SceneRender, weights_path_for
+from .proxy import (
+    PredictorConfig, ResidualPredictor, TrainConfig, TrainResult, default_cell_size, nearest_proxy,
+    select_proxies, torch_threads, train_predictor,
+)
+from .scene import AnchorScene
+
+__all__ = ["EncodeConfig", "EncodeReport", "CompressedScene", "encode", "decode", "load", "stats", "render",
+           "SCENE_KIND", "SCENE_FORMAT"]
+
+SCENE_KIND = "proxycodec.scene"
+SCENE_FORMAT = 1  # version of the scene sections (inside container format 1)
+SUPPORTED_SCENE_FORMATS = (1,)
+FLOAT_BITS = 32  # "bits" value meaning: store float32, no quantisation
+GRID_SUBDIVISIONS = 4  # positions may sit on voxel / 2^j for j <= this (Scaffold-GS grows anchors on finer grids)
+PREDICT_CHUNK = 65536  # leaves per predictor batch (fixed: the same batches in encoder and decoder)
+MAX_ANCHORS = 1 << 28
+
+Progress = Callable[[str], None]
+
+
+# ---------------------------------------------------------------------------------------------- configuration
+@dataclass(frozen=True)
+class EncodeConfig:
+    proxy_ratio: float = 0.3
+    cell_size: float | None = None  # world units; None: a multiple of the voxel size giving ~cell_target anchors/cell
+    cell_target: float = 10.0
+    feature_bits: int = 8  # proxy features, uniform per channel (32 = float32)
+    offset_bits: int = 6  # 8 -> 6 bits: -24% file size, no measurable PSNR change on the sample (SPEC.md)
+    scaling_bits: int = 8
+    weights_dtype: str = "f16"  # MLP weights: "f16" | "f32"
+    predict_offsets: bool = False  # False: every anchor's offsets are stored; True: leaves' are predicted
+    predictor_hidden: int = 64
+    predictor_blocks: int = 2
+    predictor_iters: int = 2000
+    predictor_lr: float = 2e-3
+    zstd_level: int = 19
+    seed: int = 0
+    images: str | None = None  # rendering loss during encode: not implemented (see encode)
+    use_fitted: bool = True  # a stage-2 predictor + proxy mask in the weights sidecar (proxycodec fit) is used as is
+
+    def check(self) -> "EncodeConfig":
+        if not (0.0 < self.proxy_ratio <= 1.0):
+            raise ProxycodecError(f"proxy ratio must be in (0, 1], got {self.proxy_ratio}")
+        if self.cell_size is not None and not (math.isfinite(self.cell_size) and self.cell_size > 0):
+            raise ProxycodecError(f"cell size must be positive, got {self.cell_size}")
+        for k in ("feature_bits", "offset_bits", "scaling_bits"):
+            b = getattr(self, k)
+            if not (1 <= b <= 16 or b == FLOAT_BITS):
+                raise ProxycodecError(f"{k.replace('_', ' ')} must be 1..16 or 32 (float32), got {b}")
+        if self.weights_dtype not in ("f16", "f32"):
+            raise ProxycodecError(f"weights dtype must be f16 or f32, got {self.weights_dtype!r}")
+        if not (1 <= self.zstd_level <= 22):
+            raise ProxycodecError(f"zstd level must be 1..22, got {self.zstd_level}")
+        if self.predictor_iters < 0:
+            raise ProxycodecError("predictor iterations must be >= 0")
+        return self
+
+
+@dataclass
+class EncodeReport:
+    path: Path
+    file_bytes: int
+    anchors: int
+    proxies: int
+    leaves: int
+    cell_size: float
+    sections: list[dict]
+    source_bytes: int | None  # PLY + weights sidecar of the input (None when unknown)
+    seconds: dict[str, float]
+    training: TrainResult | None
+    model: SceneModel  # exactly what decode(path) returns
+    meta: dict[str, Any] = field(repr=False, default_factory=dict)
+
+    @property
+    def ratio(self) -> float | None:
+        return None if not self.source_bytes else self.source_bytes / self.file_bytes
+
+    def to_json(self) -> dict:
+        return {"path": str(self.path), "file_bytes": self.file_bytes, "anchors": self.anchors,
+                "proxies": self.proxies, "leaves": self.leaves, "cell_size": self.cell_size,
+                "source_bytes": self.source_bytes, "ratio": self.ratio, "seconds": self.seconds,
+                "sections": self.sections,
+                "predictor": None if self.training is None else {
+                    "baseline_loss": self.training.baseline_loss, "final_loss": self.training.final_loss,
+                    "iters": self.training.iters}}
+
+
+# ---------------------------------------------------------------------------------------------- quantisation
+def _quantize(x: np.ndarray, bits: int) -> tuple[np.ndarray, dict]:
+    """[C, N] float -> (stored array, parameters). Uniform per channel; bits == 32 stores float32 unchanged."""
+    x = np.asarray(x, dtype=np.float32)
+    if bits == FLOAT_BITS:
+        return np.ascontiguousarray(x), {"bits": FLOAT_BITS}
+    levels = (1 << bits) - 1
+    xd = x.astype(np.float64)
+    if xd.shape[1]:
+        lo, hi = xd.min(1), xd.max(1)
+    else:
+        lo = hi = np.zeros(xd.shape[0])
+    scale = np.where(hi > lo, (hi - lo) / levels, 0.0)
+    q = np.zeros(xd.shape, dtype=np.float64)
+    nz = scale > 0
+    q[nz] = np.rint((xd[nz] - lo[nz, None]) / scale[nz, None])
+    q = np.clip(q, 0, levels).astype(np.uint8 if bits <= 8 else np.uint16)
+    return q, {"bits": int(bits), "offset": [float(v) for v in lo], "scale": [float(v) for v in scale]}
+
+
+def _dequantize(q: np.ndarray, params: dict, name: str, err) -> np.ndarray:
+    """Inverse of ``_quantize``: offset + q * scale in float64, rounded once to float32."""
+    bits = params["bits"]
+    if bits == FLOAT_BITS:
+        if q.dtype != np.float32:
+            raise err(f"section {name!r} must be float32")
+        if not np.all(np.isfinite(q)):
+            raise err(f"section {name!r} contains NaN or Inf")
+        return np.array(q, dtype=np.float32)
+    if not (isinstance(bits, int) and 1 <= bits <= 16):
+        raise err(f"section {name!r}: bad bit depth {bits!r}")
+    want = np.uint8 if bits <= 8 else np.uint16
+    if q.dtype != want:
+        raise err(f"section {name!r} has dtype {q.dtype}, expected {np.dtype(want)} for {bits} bits")
+    off = np.asarray(params["offset"], dtype=np.float64)
+    sc = np.asarray(params["scale"], dtype=np.float64)
+    if off.shape != (q.shape[0],) or sc.shape != (q.shape[0],):
+        raise err(f"section {name!r}: quantisation parameters do not match its {q.shape[0]} channels")
+    if not (np.all(np.isfinite(off)) and np.all(np.isfinite(sc)) and np.all(sc >= 0)):
+        raise err(f"section {name!r}: quantisation parameters are not finite")
+    if int(q.max(initial=0)) > (1 << bits) - 1:
+        raise err(f"section {name!r}: value exceeds {bits} bits")
+    x = (off[:, None] + q.astype(np.float64) * sc[:, None]).astype(np.float32)
+    if not np.all(np.isfinite(x)):
+        raise err(f"section {name!r} dequantises to NaN or Inf")
+    return x
+
+
+# ---------------------------------------------------------------------------------------------- positions
+def _grid_positions(pos: np.ndarray, voxel: float) -> tuple[np.ndarray, dict] | None:
+    """Integer grid coordinates reproducing ``pos`` (float32) exactly, or None when the anchors are off-grid.
+
+    Tries steps voxel / 2^j and two reconstruction rules: "f64" x = f32(i * step) computed in float64 (numpy),
+    "f32" x = f32(i) * f32(step) in float32 (what Scaffold-GS's torch code does).
+    """
+    p64 = pos.astype(np.float64)
+    for j in range(GRID_SUBDIVISIONS + 1):
+        step = voxel / (1 << j)
+        i = np.rint(p64 / step)
+        if len(i) and np.abs(i).max() >= 2**31 - 1:
+            return None
+        ii = i.astype(np.int64)
+        for rule in ("f64", "f32"):
+            if np.array_equal(_grid_to_xyz(ii, step, rule), pos):
+                return ii, {"mode": "grid", "step": step, "rule": rule}
+    return None
+
+
+def _grid_to_xyz(ii: np.ndarray, step: float, rule: str) -> np.ndarray:
+    if rule == "f64":
+        return (ii.astype(np.float64) * step).astype(np.float32)
+    return ii.astype(np.float32) * np.float32(step)
+
+
+def _morton_order(keys: np.ndarray, *ties: np.ndarray) -> np.ndarray:
+    """Stable z-order of [M, 3] non-negative int64 keys (21 bits per axis after a shift), ties by ``ties``."""
+    k = keys.astype(np.int64)
+    span = int(k.max(initial=0))
+    shift = max(0, span.bit_length() - 21)
+    k = (k >> shift).astype(np.uint64)
+    code = np.zeros(len(k), dtype=np.uint64)
+    for b in range(21):
+        for a in range(3):
+            code |= ((k[:, a] >> np.uint64(b)) & np.uint64(1)) << np.uint64(3 * b + a)
+    return np.lexsort(tuple(reversed(ties)) + (code,))
+
+
+def _small_int(a: np.ndarray) -> np.ndarray:
+    lo, hi = int(a.min(initial=0)), int(a.max(initial=0))
+    for dt in (np.int8, np.int16, np.int32, np.int64):
+        if np.iinfo(dt).min <= lo and hi <= np.iinfo(dt).max:
+            return a.astype(dt)
+    raise ProxycodecError("grid coordinates out of range")  # unreachable: |i| < 2^31
+
+
+# ---------------------------------------------------------------------------------------------- helpers
+def _weights_to_sections(prefix: str, arrays: dict[str, np.ndarray], dtype: str) -> dict[str, np.ndarray]:
+    out = {}
+    for k, v in arrays.items():
+        v = np.asarray(v, dtype=np.float32)
+        if dtype == "f16" and np.all(np.abs(v) <= 65504.0):
+            out[f"{prefix}/{k}"] = v.astype(np.float16)
+        else:
+            out[f"{prefix}/{k}"] = v
+    return out
+
+
+def _source_model(source) -> tuple[SceneModel, int | None, str, tuple]:
+    """(model, bytes of PLY + weights on disk or None, description, (fitted predictor, proxy mask) or (None, None))
+    of what the user handed ``encode``."""
+    if isinstance(source, SceneModel):
+        return source, None, "SceneModel", (None, None)
+    if isinstance(source, (tuple, list)) and len(source) == 2:
+        ply, w = (Path(x) for x in source)
+    elif isinstance(source, (str, os.PathLike)):
+        ply, w = Path(source), weights_path_for(source)
+    else:
+        raise ProxycodecError(f"encode expects a SceneModel, a PLY path or (PLY, weights) paths, "
+                              f"got {type(source).__name__}")
+    if ply.is_file() and ply.read_bytes()[:8] == MAGIC:
+        raise ProxycodecError("is already a proxycodec container; encode takes an anchor PLY", ply)
+    model = SceneModel.load(ply, w)
+    fitted = (None, None)
+    try:
+        from .train import load_predictor
+    except ImportError:  # pragma: no cover - the trainer is optional
+        load_predictor = None
+    if load_predictor is not None:
+        try:
+            fitted = load_predictor(w)
+        except (KeyError, TypeError, ValueError) as e:
+            raise ProxycodecError(f"bad stage-2 predictor in the weights file ({e})", w) from None
+    return model, ply.stat().st_size + w.stat().st_size, str(ply), fitted
+
+
+def _saved_size(model: SceneModel) -> int | None:
+    """Bytes of the uncompressed anchor scene (PLY + weights sidecar) as ``SceneModel.save`` writes it."""
+    try:
+        with tempfile.TemporaryDirectory() as d:
+            ply, w = model.save(Path(d) / "scene.ply")
+            return ply.stat().st_size + w.stat().st_size
+    except (ImportError, ProxycodecError, OSError):
+        return None
+
+
+def _progress_default(msg: str) -> None:
+    pass
+
+
+# ---------------------------------------------------------------------------------------------- encode
+def encode(
+    source,
+    out: str | os.PathLike,
+    config: EncodeConfig | None = None,
+    *,
+    predictor: ResidualPredictor | None = None,
+    progress: Progress | None = None,
+    **knobs,
+) -> EncodeReport:
+    """Compress an anchor scene to a container at ``out`` (written atomically).
+
+    ``source``: a ``SceneModel``, the path of an anchor PLY (weights sidecar beside it), or (PLY, weights) paths.
+    Knobs: the fields of ``EncodeConfig`` (given as ``config`` or as keyword arguments). ``predictor``: a trained
+    ``ResidualPredictor`` (e.g. from stage-2 training) to fine-tune for ``predictor_iters`` (0: keep as is).
+    """
+    if config is None:
+        config = EncodeConfig()
+    unknown = set(knobs) - set(EncodeConfig.__dataclass_fields__)
+    if unknown:
+        raise ProxycodecError(f"unknown encode option(s): {', '.join(sorted(unknown))}")
+    cfg = replace(config, **knobs).check()
+    say = progress or _progress_default
+    if cfg.images is not None:
+        # TODO(issue #5): joint fine-tuning with the rendering loss needs the trainer (stage 2, proxycodec.train).
+        raise ProxycodecError("--images (fine-tuning the predictor with the rendering loss) is not implemented in "
+                              "encode yet; the predictor is fitted on features only (L_recon). Train with the "
+                              "rendering loss in stage 2 and pass the predictor to encode instead")
+    t_start = time.perf_counter()
+    model, source_bytes, source_name, (fitted_pred, fitted_mask) = _source_model(source)
+    scene = model.scene.validate(source_name)
+    M = scene.num_anchors
+    if M == 0:
+        raise ProxycodecError("the scene has no anchors; nothing to encode")
+    if M > MAX_ANCHORS:
+        raise ProxycodecError(f"{M} anchors is more than this format allows ({MAX_ANCHORS})")
+    dcfg = model.decoder.config
+    if scene.feat_dim != dcfg.feat_dim or scene.n_offsets != dcfg.n_offsets:
+        raise ProxycodecError("anchor feature/offset counts do not match the decoder configuration")
+    K, Fd = scene.n_offsets, scene.feat_dim
+    voxel = float(scene.voxel_size)
+
+    # 1. positions: exact grid coordinates when possible, spatial (z-)order for every per-anchor section.
+    pos = scene.positions.detach().cpu().numpy().astype(np.float32)
+    grid = _grid_positions(pos, voxel)
+    if grid is not None:
+        ii, pinfo = grid
+        origin = ii.min(0)
+        rel = ii - origin
+        order = _morton_order(rel, rel[:, 0], rel[:, 1], rel[:, 2])
+        rel = rel[order]
+        deltas = np.diff(rel, axis=0, prepend=np.zeros((1, 3), np.int64)).T  # [3, M]
+        pos_sections = {"anchors/grid": _small_int(np.ascontiguousarray(deltas))}
+        pinfo = {**pinfo, "origin": [int(v) for v in origin], "order": "morton", "coding": "delta"}
+    else:
+        lo = pos.astype(np.float64).min(0)
+        cell = np.floor((pos.astype(np.float64) - lo) / voxel).astype(np.int64)
+        order = _morton_order(cell, pos[:, 0], pos[:, 1], pos[:, 2])
+        pos_sections = {"anchors/xyz": np.ascontiguousarray(pos[order].T)}
+        pinfo = {"mode": "float32", "order": "morton", "coding": "plain"}
+    perm = torch.from_numpy(order)
+    feats = scene.features.detach().float()[perm].numpy()
+    offs = scene.offsets.detach().float()[perm].numpy()  # [M, K, 3]
+    scal = scene.scalings.detach().float()[perm].numpy()
+    pos_sorted = pos[order]
+
+    # 2. proxies (those stage-2 training used, when the input comes from ``proxycodec fit``)
+    cell_size = float(cfg.cell_size) if cfg.cell_size else default_cell_size(pos_sorted, voxel, cfg.cell_target)
+    use_fitted = cfg.use_fitted and predictor is None and fitted_pred is not None and fitted_mask is not None
+    if use_fitted:
+        if fitted_mask.shape != (M,) or not fitted_mask.any():
+            raise ProxycodecError(f"the stage-2 proxy mask has shape {fitted_mask.shape}, expected ({M},)")
+        mask = np.asarray(fitted_mask, dtype=bool)[order]
+        predictor = fitted_pred
+        cfg = replace(cfg, predictor_iters=0)  # jointly trained with the renderer: used as is, not refitted
+        say("using the stage-2 proxies and predictor from the weights file (no refit)")
+    else:
+        mask = select_proxies(pos_sorted, cell_size, cfg.proxy_ratio, cfg.seed)
+    P = int(mask.sum())
+    say(f"{M} anchors: {P} proxies, {M - P} leaves (cell {cell_size:g} = {cell_size / voxel:g} voxels)")
+
+    # 3. quantise what is stored
+    q_scal, qp_scal = _quantize(scal.T, cfg.scaling_bits)
+    q_feat, qp_feat = _quantize(feats[mask].T, cfg.feature_bits)
+    off_rows = offs if not cfg.predict_offsets else offs[mask]
+    q_off, qp_off = _quantize(off_rows.reshape(len(off_rows), 3 * K).T, cfg.offset_bits)
+    err = lambda m: ProxycodecError(m)  # noqa: E731
+    feat_dq = feats.copy()
+    feat_dq[mask] = _dequantize(q_feat, qp_feat, "proxy/features", err).T
+    off_dq = offs.copy()
+    od = _dequantize(q_off, qp_off, "offsets", err).T.reshape(-1, K, 3)
+    if cfg.predict_offsets:
+        off_dq[mask] = od
+    else:
+        off_dq = od
+
+    # 4. predictor, fitted on the leaves against the dequantised proxies (what the decoder will see)
+    pcfg = PredictorConfig(feat_dim=Fd, n_offsets=K, predict_offsets=cfg.predict_offsets,
+                           hidden=cfg.predictor_hidden, n_blocks=cfg.predictor_blocks, dist_ref=voxel)
+    if predictor is not None:
+        pc = predictor.config
+        if (pc.feat_dim, pc.n_offsets, pc.predict_offsets) != (Fd, K, cfg.predict_offsets):
+            raise ProxycodecError("the given predictor does not match the scene's feature/offset sizes or the "
+                                  "offsets mode (--predict-offsets)")
+        pcfg = predictor.config
+        pred = ResidualPredictor.from_arrays(pcfg, predictor.state_arrays())
+    else:
+        torch.manual_seed(cfg.seed)
+        pred = ResidualPredictor(pcfg)
+    nearest = nearest_proxy(pos_sorted, mask)
+    tcfg = TrainConfig(iters=cfg.predictor_iters, lr=cfg.predictor_lr, lr_final=cfg.predictor_lr / 10, seed=cfg.seed)
+    t_train = time.perf_counter()
+
+    def on_iter(it, total, loss, elapsed):
+        eta = elapsed / it * (total - it)
+        say(f"predictor  iter {it:5d}/{total}  L_recon {loss:.5f}  {elapsed:6.1f} s  ETA {eta:5.1f} s")
+
+    training = train_predictor(pred, torch.from_numpy(pos_sorted), torch.from_numpy(feat_dq), mask, nearest,
+                               offsets=torch.from_numpy(off_dq if not cfg.predict_offsets else
+                                                        np.where(mask[:, None, None], off_dq, offs)),
+                               config=tcfg, progress=on_iter, progress_every=max(1, min(100, cfg.predictor_iters // 10 or 1)))
+    t_train = time.perf_counter() - t_train
+    say(f"predictor  L_recon over all leaves: proxy copy {training.baseline_loss:.5f} -> {training.final_loss:.5f}")
+
+    # 5. sections + metadata
+    sections: dict[str, np.ndarray] = dict(pos_sections)
+    sections["anchors/proxy_mask"] = np.packbits(mask, bitorder="little")
+    sections["anchors/scalings"] = q_scal
+    sections["proxy/features"] = q_feat
+    sections["proxy/offsets" if cfg.predict_offsets else "anchors/offsets"] = q_off
+    sections.update(_weights_to_sections("decoder", model.decoder.state_arrays(), cfg.weights_dtype))
+    sections.update(_weights_to_sections("predictor", pred.state_arrays(), cfg.weights_dtype))
+    if source_bytes is None:
+        source_bytes = _saved_size(model)
+    bounds = np.stack([pos.min(0), pos.max(0)]).astype(np.float64)
+    meta = {
+        "kind": SCENE_KIND,
+        "scene_format": SCENE_FORMAT,
+        "anchors": {"count": M, "proxies": P, "leaves": M - P, "feat_dim": Fd, "n_offsets": K},
+        "voxel_size": voxel,
+        "bounds": bounds.tolist(),
+        "positions": pinfo,
+        "quant": {"scalings": qp_scal, "features": qp_feat, "offsets": qp_off},
+        "offsets": "predicted" if cfg.predict_offsets else "stored",
+        "weights_dtype": cfg.weights_dtype,
+        "decoder": dcfg.to_json(),
+        "predictor": pcfg.to_json(),
+        "training": {**tcfg.to_json(), "baseline_loss": training.baseline_loss, "final_loss": training.final_loss,
+                     "loss": "feature L_recon (MSE + 0.1 cos)", "rendering_loss": False},
+        "proxy": {"source": "fit" if use_fitted else "encode", "ratio": cfg.proxy_ratio, "cell_size": cell_size, "cell_size_voxels": cell_size / voxel,
+                  "cell_target": cfg.cell_target, "seed": cfg.seed},
+        "cameras": [c.to_json() for c in model.cameras] if model.cameras else [],
+        "background": [float(x) for x in model.background],
+        "scene": _jsonable(dict(scene.metadata)),
+        "source": {"bytes": source_bytes, "name": os.path.basename(source_name)},
+        "encoder": {"zstd_level": cfg.zstd_level, "proxycodec": _version()},
+    }
+    # 6. the decoded model, through the decoder's own path (so report.model == decode(out), bit for bit)
+    decoded = _model_from_sections(meta, sections, err)
+    file_bytes = write_container(out, meta, sections, level=cfg.zstd_level)
+    _, _, infos, _ = read_header(out)
+    say(f"wrote {out}: {file_bytes:,} B" + (f" ({source_bytes / file_bytes:.1f}x smaller than PLY + weights)"
+                                           if source_bytes else ""))
+    return EncodeReport(
+        path=Path(out), file_bytes=file_bytes, anchors=M, proxies=P, leaves=M - P, cell_size=cell_size,
+        sections=[s.to_json() for s in infos], source_bytes=source_bytes,
+        seconds={"total": time.perf_counter() - t_start, "predictor": t_train}, training=training,
+        model=decoded, meta=meta)
+
+
+def _version() -> str:
+    from . import __version__
+
+    return __version__
+
+
+def _jsonable(d: Any) -> Any:
+    if isinstance(d, dict):
+        return {str(k): _jsonable(v) for k, v in d.items()}
+    if isinstance(d, (list, tuple)):
+        return [_jsonable(v) for v in d]
+    if isinstance(d, (np.generic,)):
+        return d.item()
+    if isinstance(d, float) and not math.isfinite(d):
+        return None
+    if d is None or isinstance(d, (str, int, float, bool)):
+        return d
+    return str(d)
+
+
+# ---------------------------------------------------------------------------------------------- decode
+@dataclass
+class CompressedScene:
+    """A parsed, verified scene container: metadata, sections, and the file's table of contents."""
+
+    path: Path
+    meta: dict[str, Any]
+    sections: dict[str, np.ndarray]
+    infos: tuple[SectionInfo, ...]
+    file_bytes: int
+
+    def to_model(self) -> SceneModel:
+        return _model_from_sections(self.meta, self.sections, lambda m: ContainerError(m, self.path))
+
+
+def load(path: str | os.PathLike) -> CompressedScene:
+    """Read and verify a scene container without regenerating anything (raises ``ContainerError``)."""
+    path = Path(path)
+    c = read_container(path)
+    if c.meta.get("kind") != SCENE_KIND:
+        raise ContainerError(f"not a compressed scene (kind {c.meta.get('kind')!r})", path)
+    fmt = c.meta.get("scene_format")
+    if fmt not in SUPPORTED_SCENE_FORMATS:
+        raise ContainerError(f"scene format {fmt!r} is not supported by this proxycodec (supports "
+                             f"{', '.join(map(str, SUPPORTED_SCENE_FORMATS))}); upgrade proxycodec", path)
+    return CompressedScene(path, c.meta, dict(c.arrays), c.sections, c.file_size)
+
+
+def decode(path: str | os.PathLike) -> SceneModel:
+    """Decode a container to a renderable ``SceneModel`` (leaf features regenerated by the predictor)."""
+    return load(path).to_model()
+
+
+def _section(sections, name, err, shape=None, kinds="f") -> np.ndarray:
+    if name not in sections:
+        raise err(f"missing section {name!r}")
+    a = sections[name]
+    if shape is not None and tuple(a.shape) != tuple(shape):
+        raise err(f"section {name!r} has shape {tuple(a.shape)}, expected {tuple(shape)}")
+    if a.dtype.kind not in kinds:
+        raise err(f"section {name!r} has unexpected dtype {a.dtype}")
+    return a
+
+
+def _weights_from_sections(prefix, sections, err) -> dict[str, np.ndarray]:
+    out = {}
+    for k, v in sections.items():
+        if k.startswith(prefix + "/"):
+            if v.dtype not in (np.float16, np.float32):
+                raise err(f"section {k!r}: weights must be float16 or float32")
+            out[k[len(prefix) + 1:]] = v.astype(np.float32)
+    return out
+
+
+def _model_from_sections(meta: dict, sections: dict[str, np.ndarray], err) -> SceneModel:
+    try:
+        return _model_from_sections_unchecked(meta, sections, err)
+    except (KeyError, TypeError, ValueError, IndexError, AttributeError, OverflowError) as e:
+        if isinstance(e, ProxycodecError):
+            if isinstance(e, ContainerError) or not isinstance(err(""), ContainerError):
+                raise
+            raise err(e.reason) from None
+        raise err(f"bad scene metadata ({type(e).__name__}: {e})") from None
+
+
+def _model_from_sections_unchecked(meta: dict, sections: dict[str, np.ndarray], err) -> SceneModel:
+    a = meta["anchors"]
+    M, P, Fd, K = (int(a[k]) for k in ("count", "proxies", "feat_dim", "n_offsets"))
+    if not (0 < M <= MAX_ANCHORS and 0 < P <= M and a["leaves"] == M - P and 0 < Fd <= 4096 and 0 < K <= 4096):
+        raise err(f"bad anchor counts {a}")
+    voxel = float(meta["voxel_size"])
+    if not (math.isfinite(voxel) and voxel > 0):
+        raise err(f"bad voxel size {voxel}")
+    # positions
+    pinfo = meta["positions"]
+    if pinfo["mode"] == "grid":
+        d = _section(sections, "anchors/grid", err, (3, M), "i").astype(np.int64)
+        rel = np.cumsum(d, axis=1).T
+        origin = np.asarray([int(v) for v in pinfo["origin"]], dtype=np.int64)
+        if origin.shape != (3,):
+            raise err("bad grid origin")
+        ii = rel + origin
+        if len(ii) and np.abs(ii).max() >= 2**31:
+            raise err("grid coordinates out of range")
+        step = float(pinfo["step"])
+        if not (math.isfinite(step) and step > 0) or pinfo["rule"] not in ("f64", "f32"):
+            raise err("bad grid step or rule")
+        pos = _grid_to_xyz(ii, step, pinfo["rule"])
+    elif pinfo["mode"] == "float32":
+        pos = np.ascontiguousarray(_section(sections, "anchors/xyz", err, (3, M)).T)
+        if pos.dtype != np.float32 or not np.all(np.isfinite(pos)):
+            raise err("section 'anchors/xyz' must hold finite float32 values")
+    else:
+        raise err(f"unknown position mode {pinfo['mode']!r}")
+    if not np.all(np.isfinite(pos)):
+        raise err("positions are not finite")
+    # split
+    bits = _section(sections, "anchors/proxy_mask", err, ((M + 7) // 8,), "u")
+    mask = np.unpackbits(bits, count=M, bitorder="little").astype(bool)
+    if int(mask.sum()) != P:
+        raise err(f"proxy mask marks {int(mask.sum())} proxies, metadata says {P}")
+    q = meta["quant"]
+    scal = _dequantize(_section(sections, "anchors/scalings", err, (6, M), "uf"), q["scalings"],
+                       "anchors/scalings", err).T
+    feats = np.zeros((M, Fd), dtype=np.float32)
+    feats[mask] = _dequantize(_section(sections, "proxy/features", err, (Fd, P), "uf"), q["features"],
+                              "proxy/features", err).T
+    offsets_mode = meta["offsets"]
+    if offsets_mode == "stored":
+        offs = _dequantize(_section(sections, "anchors/offsets", err, (3 * K, M), "uf"), q["offsets"],
+                           "anchors/offsets", err).T.reshape(M, K, 3)
+    elif offsets_mode == "predicted":
+        offs = np.zeros((M, K, 3), dtype=np.float32)
+        offs[mask] = _dequantize(_section(sections, "proxy/offsets", err, (3 * K, P), "uf"), q["offsets"],
+                                 "proxy/offsets", err).T.reshape(P, K, 3)
+    else:
+        raise err(f"unknown offsets mode {offsets_mode!r}")
+    # networks
+    dcfg = DecoderConfig.from_json(meta["decoder"])
+    pcfg = PredictorConfig.from_json(meta["predictor"])
+    if (dcfg.feat_dim, dcfg.n_offsets, pcfg.feat_dim, pcfg.n_offsets) != (Fd, K, Fd, K):
+        raise err("network configurations do not match the anchors' feature/offset sizes")
+    if pcfg.predict_offsets != (offsets_mode == "predicted"):
+        raise err("predictor configuration disagrees with the offsets mode")
+    decoder = GaussianDecoder.from_arrays(dcfg, _weights_from_sections("decoder", sections, err)).eval()
+    predictor = ResidualPredictor.from_arrays(pcfg, _weights_from_sections("predictor", sections, err)).eval()
+    # leaves
+    pos_t, feat_t, off_t = torch.from_numpy(pos), torch.from_numpy(feats), torch.from_numpy(offs)
+    leaves = torch.from_numpy(np.flatnonzero(~mask))
+    if leaves.numel():
+        nearest = torch.from_numpy(nearest_proxy(pos, mask))
+        with torch.no_grad(), torch_threads(1):  # fixed thread count: the same bits in encoder and decoder
+            for s in range(0, leaves.numel(), PREDICT_CHUNK):
+                lv = leaves[s:s + PREDICT_CHUNK]
+                f_pred, o_pred = predictor.predict(pos_t, feat_t, nearest, lv, off_t)
+                feat_t[lv] = f_pred
+                if o_pred is not None:
+                    off_t[lv] = o_pred
+    if not (torch.isfinite(feat_t).all() and torch.isfinite(off_t).all()):
+        raise err("regenerated leaves are not finite")
+    cams = [Camera.from_json(c) for c in meta.get("cameras", [])]
+    bg = tuple(float(x) for x in meta.get("background", (1.0, 1.0, 1.0)))
+    if len(bg) != 3:
+        raise err("background must have 3 components")
+    scene_meta = dict(meta.get("scene", {})) if isinstance(meta.get("scene", {}), dict) else {}
+    scene_meta["proxy_mask"] = mask  # which anchors were proxies (in the stored order)
+    scene = AnchorScene(pos_t, feat_t, off_t, torch.from_numpy(np.ascontiguousarray(scal)), voxel, scene_meta)
+    scene.validate()
+    return SceneModel(scene, decoder, cams or None, bg)  # type: ignore[arg-type]
+
+
+# ---------------------------------------------------------------------------------------------- stats
+def stats(path: str | os.PathLike) -> dict:
+    """Sizes and counts of a scene container, any proxycodec container, or an anchor PLY."""
+    path = Path(path)
+    try:
+        head = path.open("rb").read(len(MAGIC))
+    except FileNotFoundError:
+        raise ProxycodecError("no such file", path) from None
+    except IsADirectoryError:
+        raise ProxycodecError("is a directory", path) from None
+    if head == MAGIC:
+        return _container_stats(path)
+    return _ply_stats(path)
+
+
+def _container_stats(path: Path) -> dict:
+    c = read_container(path)  # every section is decompressed and CRC-checked: stats also verifies the file
+    version, flags, infos, size = c.version, c.flags, c.sections, c.file_size
+    meta = c.meta
+    sections = [s.to_json() for s in infos]
+    out: dict[str, Any] = {"file": str(path), "type": "container", "kind": meta.get("kind"),
+                           "format_version": version, "flags": flags, "file_bytes": size,
+                           "header_and_toc_bytes": infos[0].offset if infos else size,
+                           "sections": sections}
+    if meta.get("kind") == SCENE_KIND:
+        a = meta.get("anchors", {})
+        M = int(a.get("count", 0) or 0)
+        src = (meta.get("source") or {}).get("bytes")
+        groups: dict[str, int] = {}
+        for s in infos:
+            g = s.name.split("/")[0] if "/" in s.name else s.name
+            groups[g] = groups.get(g, 0) + s.stored_size
+        out.update({
+            "scene_format": meta.get("scene_format"), "anchors": M, "proxies": a.get("proxies"),
+            "leaves": a.get("leaves"), "bits_per_anchor": 8.0 * size / M if M else None,
+            "source_bytes": src, "ratio": (src / size) if src else None, "bytes_by_group": groups,
+            "positions": meta.get("positions", {}).get("mode"), "offsets": meta.get("offsets"),
+            "proxy": meta.get("proxy"), "quant_bits": {k: v.get("bits") for k, v in meta.get("quant", {}).items()},
+            "weights_dtype": meta.get("weights_dtype"),
+        })
+    out["metadata"] = meta
+    return out
+
+
+def _ply_stats(path: Path) -> dict:
+    from .formats.ply import read_ply_header
+
+    header = read_ply_header(path)
+    names = list(header.names)
+    size = path.stat().st_size
+    w = weights_path_for(path)
+    wbytes = w.stat().st_size if w.exists() else None
+    M = int(header.count)
+    groups = {"positions": ("x", "y", "z"), "offsets": ("f_offset_",), "features": ("f_anchor_feat_",),
+              "scalings": ("scale_",), "unused": ("nx", "ny", "nz", "opacity", "rot_")}
+    itemsize = dict(zip(names, [np.dtype(header.dtype()[n]).itemsize for n in names]))
+    by_group = {}
+    for g, prefixes in groups.items():
+        by_group[g] = M * sum(itemsize[n] for n in names if any(n == p or (p.endswith("_") and n.startswith(p))
+                                                                 for p in prefixes))
+    total = size + (wbytes or 0)
+    return {"file": str(path), "type": "ply", "anchors": M, "file_bytes": size, "weights_file": str(w),
+            "weights_bytes": wbytes, "total_bytes": total, "bits_per_anchor": 8.0 * total / M if M else None,
+            "raw_bytes_by_group": by_group, "properties": len(names)}
+
+
+# ---------------------------------------------------------------------------------------------- rendering
+def default_cameras(model: SceneModel, n: int = 8, width: int = 256, height: int = 192) -> list[Camera]:
+    """The model's own cameras, else an orbit around the anchors' bounds."""
+    if model.cameras:
+        return list(model.cameras)
+    b = model.scene.bounds()
+    c = b.mean(0)
+    r = max(float(np.linalg.norm(b[1] - b[0])) / 2.0, 1e-3)
+    return orbit_cameras(c, 2.2 * r, n, elevation_deg=30.0, fov_x_deg=50.0, width=width, height=height)
+
+
+def as_model(source) -> SceneModel:
+    if isinstance(source, SceneModel):
+        return source
+    p = Path(source)
+    try:
+        is_container = p.open("rb").read(len(MAGIC)) == MAGIC
+    except FileNotFoundError:
+        raise ProxycodecError("no such file", p) from None
+    return decode(p) if is_container else SceneModel.load(p)
+
+
+def render(source, xi: float = 1.0, cameras: list[Camera] | None = None, *,
+           backend: str = "auto") -> list[SceneRender]:
+    """Render a container, an anchor PLY or a ``SceneModel`` at ratio ``xi`` for ``cameras`` (default: stored)."""
+    model = as_model(source)
+    return [model.render(c, xi, backend=backend) for c in (cameras or default_cameras(model))]
+
+
+def export_gaussians(model: SceneModel, camera: Camera, xi: float = 1.0):
+    """Explicit Gaussians of every anchor decoded for one camera/resolution, as INRIA 3DGS PLY arrays.
+
+    View dependence is baked: colour -> SH DC via (rgb - 0.5) / C0; opacity is the decoder's ungated opacity
+    (the coverage gate depends on the view's pixel footprint, so it is not baked) stored as a logit; scales as logs;
+    quaternions normalised (w, x, y, z). Returns a dict of float32 arrays.
+    """
+    from .camera import check_xi
+
+    xi = check_xi(xi)
+    s = model.scene
+    cam = camera.scaled(xi)
+    _, _, center = cam.torch_params(s.positions.device, s.positions.dtype)
+    with torch.no_grad():
+        g = model.decoder(s.positions, s.features, s.offsets, s.scalings, center, xi)
+    C0 = 0.28209479177387814
+    op = g.opacities.clamp(1e-6, 1 - 1e-6)
+    q = g.quats / g.quats.norm(dim=1, keepdim=True).clamp_min(1e-12)
+    q = torch.where(g.quats.norm(dim=1, keepdim=True) > 0, q, torch.tensor([1.0, 0.0, 0.0, 0.0]))
+    return {
+        "means": g.world_means().float().numpy(),
+        "sh_dc": ((g.colors - 0.5) / C0).float().numpy(),
+        "opacity_logits": torch.log(op / (1 - op)).float().numpy(),
+        "log_scales": torch.log(g.scales.clamp_min(1e-30)).float().numpy(),
+        "quats": q.float().numpy(),
+    }
+
+
+def write_gaussian_ply(path: str | os.PathLike, arrays: dict[str, np.ndarray]) -> int:
+    """Write ``export_gaussians`` output as a standard INRIA 3DGS PLY (SH degree 0); returns the Gaussian count."""
+    from .formats.inria_ply import GaussianPly, write_inria_ply
+
+    ply = GaussianPly(means=arrays["means"], sh=arrays["sh_dc"][:, None, :], opacities=arrays["opacity_logits"],
+                      scales=arrays["log_scales"], quats=arrays["quats"])
+    write_inria_ply(path, ply)
+    return ply.n_gaussians

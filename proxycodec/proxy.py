@@ -1,0 +1,431 @@
+"""Proxy anchors and the residual anchor predictor (METHOD.md section 3).
+
+- ``select_proxies``: density-aware selection (supplement 7.3, eq. 15-16). Cell index g_i = floor(v_i / eps); in every
+  occupied cell ceil(rho * |G_l|) anchors are drawn uniformly at random. Deterministic for a seed and independent of
+  the order the anchors come in (each anchor's random key is drawn in lexicographic position order).
+- ``nearest_proxy``: for every anchor, the index of its nearest proxy (a proxy maps to itself). Ties are broken
+  explicitly (smallest squared distance, then smallest index) so encoder and decoder always agree.
+- ``ResidualPredictor``: [f_k (F), PE(log distance), PE(unit direction proxy->leaf)] -> encoder -> residual MLP blocks
+  -> delta (F, plus 3K offset deltas when it also predicts offsets). Prediction = proxy value + delta. The head starts
+  at zero, so an untrained predictor is exactly the proxy-copy baseline.
+- ``recon_loss``: L_recon = mean_i ||f~_i - f_i||^2 + 0.1 (1 - cos(f~_i, f_i)).
+- ``train_predictor``: Adam on L_recon over 20% of the leaves drawn per iteration (stage-2's feature-only part).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import time
+from dataclasses import asdict, dataclass
+from typing import Callable
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from .decoder import positional_encoding
+from .errors import ProxycodecError
+
+__all__ = [
+    "default_cell_size", "select_proxies", "nearest_proxy", "PredictorConfig", "ResidualPredictor",
+    "predictor_inputs", "recon_loss", "TrainConfig", "TrainResult", "train_predictor", "proxies_per_cell",
+]
+
+
+# ---------------------------------------------------------------------------------------------- proxy selection
+def _cells(positions: np.ndarray, cell_size: float) -> np.ndarray:
+    """[M] cell id (dense, 0..n_cells-1) of g_i = floor(v_i / eps), computed in float64."""
+    g = np.floor(np.asarray(positions, dtype=np.float64) / float(cell_size)).astype(np.int64)
+    _, inv = np.unique(g, axis=0, return_inverse=True)
+    return inv.reshape(-1)
+
+
+def proxies_per_cell(counts: np.ndarray, ratio: float) -> np.ndarray:
+    """ceil(rho * n) per cell, guarded against float error (0.3 * 10 must give 3, not 4)."""
+    return np.ceil(np.asarray(counts, dtype=np.float64) * float(ratio) - 1e-9).astype(np.int64)
+
+
+def default_cell_size(positions, voxel_size: float, target: float = 10.0, max_multiple: int = 1024) -> float:
+    """A multiple m of the voxel size such that an occupied cell holds ~``target`` anchors on average.
+
+    The mean occupancy grows with m; the m whose mean is closest to ``target`` (in log ratio) wins.
+    """
+    p = np.asarray(positions.detach().cpu() if isinstance(positions, torch.Tensor) else positions, dtype=np.float64)
+    if len(p) == 0:
+        return float(voxel_size)
+    best, best_err, m = 1, math.inf, 1
+    while m <= max_multiple:
+        n_cells = int(_cells(p, m * voxel_size).max()) + 1
+        mean = len(p) / n_cells
+        err = abs(math.log(mean / target))
+        if err < best_err:
+            best, best_err = m, err
+        if mean >= target or n_cells == 1:
+            break
+        m += 1 if m < 8 else max(1, m // 4)
+    return float(best * voxel_size)
+
+
+def select_proxies(positions, cell_size: float, ratio: float = 0.3, seed: int = 0) -> np.ndarray:
+    """[M] bool mask of proxy anchors: ceil(ratio * |G_l|) drawn uniformly at random in every occupied cell."""
+    p = np.asarray(positions.detach().cpu() if isinstance(positions, torch.Tensor) else positions, dtype=np.float64)
+    if not (0.0 < ratio <= 1.0):
+        raise ProxycodecError(f"proxy ratio must be in (0, 1], got {ratio}")
+    if not (math.isfinite(cell_size) and cell_size > 0):
+        raise ProxycodecError(f"cell size must be positive, got {cell_size}")
+    M = len(p)
+    if M == 0:
+        return np.zeros(0, dtype=bool)
+    cell = _cells(p, cell_size)
+    # Random keys drawn in lexicographic position order: the selection does not depend on the input order.
+    canon = np.lexsort((p[:, 2], p[:, 1], p[:, 0]))
+    key = np.empty(M)
+    key[canon] = np.random.default_rng(seed).random(M)
+    order = np.lexsort((key, cell))  # by cell, random within
+    counts = np.bincount(cell)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    rank = np.arange(M) - starts[cell[order]]
+    mask = np.zeros(M, dtype=bool)
+    mask[order] = rank < proxies_per_cell(counts, ratio)[cell[order]]
+    return mask
+
+
+#: Below this many (leaf, proxy) pairs the nearest proxy is found by exhaustive search (no scipy import, which
+#: costs seconds in a fresh process); above it by a kd-tree. Both give identical results (same exact tie-breaking).
+BRUTE_FORCE_PAIRS = 2_000_000
+
+
+def nearest_proxy(positions, proxy_mask) -> np.ndarray:
+    """[M] int64: index (into ``positions``) of each anchor's nearest proxy; proxies map to themselves.
+
+    Distances are squared Euclidean, computed in float64 as ((a - b)^2).sum() on the given coordinates; ties go to
+    the smallest proxy index. Encoder and decoder call this on the same stored positions, so they always agree.
+    """
+    p = np.asarray(positions.detach().cpu() if isinstance(positions, torch.Tensor) else positions, dtype=np.float64)
+    mask = np.asarray(proxy_mask, dtype=bool)
+    M = len(p)
+    out = np.arange(M, dtype=np.int64)
+    pidx = np.flatnonzero(mask)
+    leaves = np.flatnonzero(~mask)
+    if len(leaves) == 0:
+        return out
+    if len(pidx) == 0:
+        raise ProxycodecError("no proxy anchors: every leaf needs a proxy")
+    pp = p[pidx]
+    if len(leaves) * len(pidx) <= BRUTE_FORCE_PAIRS:
+        rows = max(1, (8 << 20) // (len(pidx) * 3))  # ~8M elements per block
+        for s in range(0, len(leaves), rows):
+            lv = leaves[s:s + rows]
+            d2 = ((pp[None, :, :] - p[lv][:, None, :]) ** 2).sum(-1)  # [l, P]
+            out[lv] = pidx[np.argmin(d2, axis=1)]  # argmin: first (= smallest index) of the minima
+        return out
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(pp)
+    k = min(16, len(pidx))
+    _, cand = tree.query(p[leaves], k=k)
+    cand = np.sort(cand.reshape(len(leaves), k), axis=1)  # ascending proxy index
+    d2 = ((pp[cand] - p[leaves][:, None, :]) ** 2).sum(-1)  # [L, k], the same formula as above
+    best = pidx[cand[np.arange(len(leaves)), np.argmin(d2, axis=1)]]
+    # When even the k-th candidate ties with the best, more ties may exist beyond it: resolve those exhaustively.
+    for r in np.flatnonzero(d2.max(1) <= d2.min(1)):
+        d = ((pp - p[leaves[r]]) ** 2).sum(-1)
+        best[r] = pidx[np.argmin(d)]
+    out[leaves] = best
+    return out
+
+
+# ---------------------------------------------------------------------------------------------- predictor
+@dataclass(frozen=True)
+class PredictorConfig:
+    feat_dim: int = 32
+    n_offsets: int = 10
+    predict_offsets: bool = False  # also output 3K leaf-offset deltas
+    hidden: int = 64
+    n_blocks: int = 2
+    pe_dist_freqs: int = 4
+    pe_dir_freqs: int = 4
+    dist_ref: float = 1.0  # distances enter as log(d / dist_ref) / 4 (dist_ref = the voxel size)
+
+    def __post_init__(self) -> None:
+        for k in ("feat_dim", "n_offsets", "hidden"):
+            if not 1 <= int(getattr(self, k)) <= 4096:
+                raise ProxycodecError(f"predictor {k} = {getattr(self, k)} is out of range")
+        for k in ("n_blocks", "pe_dist_freqs", "pe_dir_freqs"):
+            if not 0 <= int(getattr(self, k)) <= 64:
+                raise ProxycodecError(f"predictor {k} = {getattr(self, k)} is out of range")
+        if not (math.isfinite(self.dist_ref) and self.dist_ref > 0):
+            raise ProxycodecError(f"predictor dist_ref must be positive, got {self.dist_ref}")
+
+    @property
+    def n_in(self) -> int:
+        return self.feat_dim + (1 + 2 * self.pe_dist_freqs) + 3 * (1 + 2 * self.pe_dir_freqs)
+
+    @property
+    def n_out(self) -> int:
+        return self.feat_dim + (3 * self.n_offsets if self.predict_offsets else 0)
+
+    def to_json(self) -> dict:
+        return asdict(self)
+
+    @staticmethod
+    def from_json(d: dict) -> "PredictorConfig":
+        try:
+            kw = {k: d[k] for k in PredictorConfig.__dataclass_fields__ if k in d}
+            for k in ("feat_dim", "n_offsets", "hidden", "n_blocks", "pe_dist_freqs", "pe_dir_freqs"):
+                if k in kw:
+                    if isinstance(kw[k], bool) or not isinstance(kw[k], int):
+                        raise ValueError(f"{k} must be an integer")
+            if "predict_offsets" in kw and not isinstance(kw["predict_offsets"], bool):
+                raise ValueError("predict_offsets must be a boolean")
+            if "dist_ref" in kw:
+                kw["dist_ref"] = float(kw["dist_ref"])
+            return PredictorConfig(**kw)
+        except (TypeError, ValueError, AttributeError) as e:
+            if isinstance(e, ProxycodecError):
+                raise
+            raise ProxycodecError(f"bad predictor configuration: {e}") from None
+
+
+class _Block(nn.Module):
+    def __init__(self, h: int):
+        super().__init__()
+        self.fc1 = nn.Linear(h, h)
+        self.fc2 = nn.Linear(h, h)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return x + self.fc2(torch.relu(self.fc1(x)))
+
+
+def predictor_inputs(positions: torch.Tensor, proxy_pos: torch.Tensor, dist_ref: float,
+                     pe_dist_freqs: int, pe_dir_freqs: int) -> torch.Tensor:
+    """[L, 1 + 2 Ld + 3 (1 + 2 Lr)]: PE of log distance and of the unit direction proxy -> leaf."""
+    v = positions - proxy_pos  # [L, 3]
+    d = v.norm(dim=1, keepdim=True)
+    u = v / d.clamp_min(1e-12)
+    s = torch.log(d.clamp_min(1e-6 * dist_ref) / dist_ref) / 4.0
+    return torch.cat([positional_encoding(s, pe_dist_freqs), positional_encoding(u, pe_dir_freqs)], -1)
+
+
+class ResidualPredictor(nn.Module):
+    """f~_q = f_k + delta_f(f_k, PE(log |v_q - v_k|), PE(unit(v_q - v_k))) (and offsets likewise, optionally)."""
+
+    def __init__(self, config: PredictorConfig = PredictorConfig()):
+        super().__init__()
+        self.config = config
+        h = config.hidden
+        self.encoder = nn.Sequential(nn.Linear(config.n_in, h), nn.ReLU())
+        self.blocks = nn.ModuleList(_Block(h) for _ in range(config.n_blocks))
+        self.head = nn.Linear(h, config.n_out)
+        nn.init.zeros_(self.head.weight)  # starts as the proxy-copy baseline
+        nn.init.zeros_(self.head.bias)
+
+    def forward(
+        self,
+        proxy_features: torch.Tensor,  # [L, F] features of each leaf's nearest proxy
+        geometry: torch.Tensor,  # [L, G] predictor_inputs(...)
+        proxy_offsets: torch.Tensor | None = None,  # [L, K, 3] when predict_offsets
+    ) -> tuple[torch.Tensor, torch.Tensor | None]:
+        cfg = self.config
+        x = self.encoder(torch.cat([proxy_features, geometry], -1))
+        for b in self.blocks:
+            x = b(x)
+        out = self.head(x)
+        feats = proxy_features + out[:, :cfg.feat_dim]
+        offs = None
+        if cfg.predict_offsets:
+            if proxy_offsets is None:
+                raise ProxycodecError("this predictor also predicts offsets: pass the proxies' offsets")
+            offs = proxy_offsets + out[:, cfg.feat_dim:].reshape(-1, cfg.n_offsets, 3)
+        return feats, offs
+
+    def predict(self, positions: torch.Tensor, features: torch.Tensor, nearest: torch.Tensor,
+                leaves: torch.Tensor, offsets: torch.Tensor | None = None):
+        """Predictions for the anchors ``leaves`` given every anchor's position, the proxies' features/offsets
+        (rows of leaves are ignored) and ``nearest`` (``nearest_proxy``)."""
+        cfg = self.config
+        k = nearest[leaves]
+        geo = predictor_inputs(positions[leaves], positions[k], cfg.dist_ref, cfg.pe_dist_freqs, cfg.pe_dir_freqs)
+        return self(features[k], geo, offsets[k] if (offsets is not None and cfg.predict_offsets) else None)
+
+    # ------------------------------------------------------------------ persistence (raw arrays, no pickle)
+    def state_arrays(self) -> dict[str, np.ndarray]:
+        return {k: v.detach().cpu().float().numpy().copy() for k, v in self.state_dict().items()}
+
+    @classmethod
+    def from_arrays(cls, config: PredictorConfig, arrays: dict[str, np.ndarray]) -> "ResidualPredictor":
+        pred = cls(config)
+        expected = pred.state_dict()
+        missing = sorted(set(expected) - set(arrays))
+        if missing:
+            raise ProxycodecError(f"predictor weights are missing {', '.join(missing[:4])}")
+        state = {}
+        for k, ref in expected.items():
+            a = np.asarray(arrays[k])
+            if tuple(a.shape) != tuple(ref.shape):
+                raise ProxycodecError(f"predictor weight {k} has shape {a.shape}, expected {tuple(ref.shape)}")
+            if not np.all(np.isfinite(a)):
+                raise ProxycodecError(f"predictor weight {k} contains NaN or Inf")
+            state[k] = torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32))
+        pred.load_state_dict(state)
+        return pred
+
+
+def recon_loss(pred: torch.Tensor, target: torch.Tensor, cos_weight: float = 0.1) -> torch.Tensor:
+    """L_recon = mean_i ||pred_i - target_i||^2 + cos_weight * mean_i (1 - cos(pred_i, target_i)).
+
+    The squared error is summed over channels and averaged over rows, as METHOD.md section 3 writes it.
+    """
+    if pred.shape != target.shape or pred.ndim != 2:
+        raise ProxycodecError(f"recon_loss expects two [N, F] tensors, got {tuple(pred.shape)} and "
+                              f"{tuple(target.shape)}")
+    if pred.shape[0] == 0:
+        return pred.sum() * 0.0
+    mse = ((pred - target) ** 2).sum(1).mean()
+    cos = F.cosine_similarity(pred, target, dim=1, eps=1e-8)
+    return mse + cos_weight * (1.0 - cos).mean()
+
+
+# ---------------------------------------------------------------------------------------------- training
+@dataclass(frozen=True)
+class TrainConfig:
+    iters: int = 2000
+    lr: float = 2e-3
+    lr_final: float = 2e-4  # cosine decay to this
+    sample_frac: float = 0.2  # leaves per iteration [S Fig. 12]
+    offset_weight: float = 1.0  # weight of the offset MSE when offsets are predicted
+    seed: int = 0
+
+    def to_json(self) -> dict:
+        return asdict(self)
+
+
+@dataclass
+class TrainResult:
+    baseline_loss: float  # L_recon of the proxy-copy prediction over all leaves
+    final_loss: float  # L_recon of the trained predictor over all leaves
+    iters: int
+    seconds: float
+    history: list[tuple[int, float]]
+
+
+@contextlib.contextmanager
+def torch_threads(n: int):
+    """Run a block with ``n`` intra-op threads (restored after).
+
+    The predictor is small: one thread is faster than two fighting over the cores (OpenMP spin-waiting under load made
+    a 1 s fit take 50 s on a busy 2-core machine), and a fixed thread count keeps float results reproducible.
+    """
+    old = torch.get_num_threads()
+    if old == n:
+        yield
+        return
+    torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(old)
+
+
+class _Adam:
+    """Plain Adam (Kingma & Ba, bias-corrected; torch.optim.Adam's defaults). Hand-written because importing
+    torch.optim pulls in torch._dynamo, which costs seconds in every fresh process that encodes."""
+
+    def __init__(self, params, betas=(0.9, 0.999), eps=1e-8):
+        self.params = [p for p in params if p.requires_grad]
+        self.m = [torch.zeros_like(p) for p in self.params]
+        self.v = [torch.zeros_like(p) for p in self.params]
+        self.b1, self.b2, self.eps, self.t = betas[0], betas[1], eps, 0
+
+    def zero_grad(self) -> None:
+        for p in self.params:
+            p.grad = None
+
+    @torch.no_grad()
+    def step(self, lr: float) -> None:
+        self.t += 1
+        c1, c2 = 1 - self.b1 ** self.t, 1 - self.b2 ** self.t
+        for p, m, v in zip(self.params, self.m, self.v):
+            if p.grad is None:
+                continue
+            g = p.grad
+            m.mul_(self.b1).add_(g, alpha=1 - self.b1)
+            v.mul_(self.b2).addcmul_(g, g, value=1 - self.b2)
+            p.addcdiv_(m, (v / c2).sqrt_().add_(self.eps), value=-lr / c1)
+
+
+ProgressFn = Callable[[int, int, float, float], None]  # (iteration, total, loss, seconds elapsed)
+
+
+def train_predictor(
+    predictor: ResidualPredictor,
+    positions: torch.Tensor,  # [M, 3] (what the decoder will see)
+    features: torch.Tensor,  # [M, F]: proxies' rows are the inputs (quantised as stored), leaves' the targets
+    proxy_mask,  # [M] bool
+    nearest=None,  # [M] from nearest_proxy (computed when None)
+    *,
+    offsets: torch.Tensor | None = None,  # [M, K, 3], needed when the predictor predicts offsets
+    config: TrainConfig = TrainConfig(),
+    progress: ProgressFn | None = None,
+    progress_every: int = 100,
+) -> TrainResult:
+    """Fit ``predictor`` (in place) to the scene's own leaves with Adam on L_recon, 20% of leaves per iteration."""
+    t0 = time.perf_counter()
+    cfg = predictor.config
+    mask = torch.as_tensor(np.asarray(proxy_mask, dtype=bool))
+    if nearest is None:
+        nearest = nearest_proxy(positions, mask.numpy())
+    nearest = torch.as_tensor(np.asarray(nearest), dtype=torch.long)
+    leaves = (~mask).nonzero().squeeze(1)
+    positions = positions.detach().float()
+    features = features.detach().float()
+    offsets = None if offsets is None else offsets.detach().float()
+    k = nearest[leaves]
+    geo = predictor_inputs(positions[leaves], positions[k], cfg.dist_ref, cfg.pe_dist_freqs, cfg.pe_dir_freqs)
+    f_in, f_tgt = features[k], features[leaves]
+    o_in = offsets[k] if (cfg.predict_offsets and offsets is not None) else None
+    o_tgt = offsets[leaves] if o_in is not None else None
+    if cfg.predict_offsets and offsets is None:
+        raise ProxycodecError("the predictor predicts offsets: train_predictor needs offsets")
+
+    def loss_of(idx=None):
+        sl = slice(None) if idx is None else idx
+        fp, op = predictor(f_in[sl], geo[sl], None if o_in is None else o_in[sl])
+        loss = recon_loss(fp, f_tgt[sl])
+        if op is not None:
+            loss = loss + config.offset_weight * ((op - o_tgt[sl]) ** 2).sum((1, 2)).mean()
+        return loss
+
+    with torch_threads(1):
+        return _train(predictor, loss_of, int(leaves.numel()), config, progress, progress_every, t0)
+
+
+def _train(predictor, loss_of, L, config, progress, progress_every, t0) -> TrainResult:
+    with torch.no_grad():
+        baseline = float(loss_of()) if L else 0.0
+    history: list[tuple[int, float]] = []
+    if L == 0 or config.iters <= 0:
+        return TrainResult(baseline, baseline, 0, time.perf_counter() - t0, history)
+    gen = torch.Generator().manual_seed(int(config.seed))
+    torch.manual_seed(int(config.seed))
+    opt = _Adam(predictor.parameters())
+    n = max(1, int(math.ceil(config.sample_frac * L)))
+    predictor.train()
+    for it in range(1, config.iters + 1):
+        t = (it - 1) / max(1, config.iters - 1)
+        lr = config.lr_final + 0.5 * (config.lr - config.lr_final) * (1 + math.cos(math.pi * t))
+        idx = torch.randperm(L, generator=gen)[:n]
+        loss = loss_of(idx)
+        opt.zero_grad()
+        loss.backward()
+        opt.step(lr)
+        if it % progress_every == 0 or it == config.iters:
+            history.append((it, float(loss.detach())))
+            if progress is not None:
+                progress(it, config.iters, history[-1][1], time.perf_counter() - t0)
+    predictor.eval()
+    with torch.no_grad():
+        final = float(loss_of())
+    return TrainResult(baseline, final, config.iters, time.perf_counter() - t0, history)

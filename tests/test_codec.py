@@ -1,0 +1,312 @@
+"""The scene codec (proxycodec.codec) and its CLI: exactness, determinism, modes, stats, PLY export."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+from click.testing import CliRunner
+
+from proxycodec import codec
+from proxycodec.camera import orbit_cameras
+from proxycodec.cli.main import cli
+from proxycodec.decoder import DecoderConfig, GaussianDecoder
+from proxycodec.errors import ProxycodecError
+from proxycodec.formats.container import ContainerError, read_container, write_container
+from proxycodec.model import SceneModel
+from proxycodec.scene import AnchorScene
+
+FAST = dict(predictor_iters=15, predictor_hidden=16, predictor_blocks=1, zstd_level=3)
+VOXEL = 0.05
+
+
+def tiny_model(n=300, seed=0, on_grid=True, rule="f64") -> SceneModel:
+    rng = np.random.default_rng(seed)
+    cells = np.stack(np.meshgrid(np.arange(12), np.arange(12), np.arange(4), indexing="ij"), -1).reshape(-1, 3)
+    cells = cells[rng.choice(len(cells), n, replace=False)] - np.array([6, 6, 0])
+    if rule == "f64":
+        pos = (cells * VOXEL).astype(np.float32)
+    else:  # Scaffold-GS: float32 integer times float32 voxel
+        pos = cells.astype(np.float32) * np.float32(VOXEL)
+    if not on_grid:
+        pos = pos + rng.uniform(-0.01, 0.01, pos.shape).astype(np.float32)
+    freq = rng.normal(size=(32, 3)) * 2.0
+    feats = np.sin(pos.astype(np.float64) @ freq.T + rng.uniform(0, 6.28, 32)).astype(np.float32)
+    offs = rng.uniform(-0.5, 0.5, (n, 10, 3)).astype(np.float32)
+    scal = (np.log(VOXEL) + rng.normal(0, 0.1, (n, 6))).astype(np.float32)
+    scene = AnchorScene(torch.from_numpy(pos), torch.from_numpy(feats), torch.from_numpy(offs),
+                        torch.from_numpy(scal), VOXEL, {"name": "tiny"}).validate()
+    torch.manual_seed(seed)
+    dec = GaussianDecoder(DecoderConfig(scene_center=(0.0, 0.0, 0.1), scene_radius=0.6)).eval()
+    cams = orbit_cameras((0.0, 0.0, 0.1), 1.5, 2, width=32, height=24)
+    return SceneModel(scene, dec, cams, (1.0, 1.0, 1.0))
+
+
+def _arrays(model: SceneModel) -> dict[str, np.ndarray]:
+    s = model.scene
+    out = {k: getattr(s, k).numpy() for k in ("positions", "features", "offsets", "scalings")}
+    out.update({f"decoder/{k}": v for k, v in model.decoder.state_arrays().items()})
+    return out
+
+
+def _assert_same(a: SceneModel, b: SceneModel) -> None:
+    aa, bb = _arrays(a), _arrays(b)
+    assert aa.keys() == bb.keys()
+    for k in aa:
+        assert aa[k].dtype == bb[k].dtype and aa[k].tobytes() == bb[k].tobytes(), k
+
+
+def _match(orig: np.ndarray, decoded: np.ndarray) -> np.ndarray:
+    """Index into ``orig`` of every decoded anchor (positions are unique)."""
+    lookup = {p.tobytes(): i for i, p in enumerate(orig)}
+    return np.array([lookup[p.tobytes()] for p in decoded])
+
+
+@pytest.fixture(scope="module")
+def encoded(tmp_path_factory):
+    model = tiny_model()
+    path = tmp_path_factory.mktemp("codec") / "tiny.pxc"
+    report = codec.encode(model, path, **FAST)
+    return model, path, report
+
+
+class TestExactness:
+    def test_decode_reproduces_the_reported_model_bit_exactly(self, encoded):
+        _, path, report = encoded
+        _assert_same(codec.decode(path), report.model)
+
+    def test_positions_exact_and_stored_arrays_on_their_quantisation_lattice(self, encoded):
+        model, path, report = encoded
+        dec = codec.decode(path)
+        meta = report.meta
+        assert meta["positions"]["mode"] == "grid"
+        orig_pos = model.scene.positions.numpy()
+        idx = _match(orig_pos, dec.scene.positions.numpy())  # every decoded position is an original, exactly
+        assert sorted(idx.tolist()) == list(range(model.scene.num_anchors))
+        mask = dec.scene.metadata["proxy_mask"]
+        for name, rows, q in (("scalings", slice(None), meta["quant"]["scalings"]),
+                              ("features", mask, meta["quant"]["features"]),
+                              ("offsets", slice(None), meta["quant"]["offsets"])):
+            d = getattr(dec.scene, name).numpy()[rows].reshape(-1 if name != "features" else int(mask.sum()), len(q["scale"]))
+            o = getattr(model.scene, name).numpy()[idx][rows].reshape(d.shape)
+            off, sc = np.array(q["offset"]), np.array(q["scale"])
+            k = np.rint((d.astype(np.float64) - off) / np.where(sc > 0, sc, 1))
+            # d is exactly float32(offset + k * scale), and within half a step of the original
+            assert np.array_equal(d, (off + k * sc).astype(np.float32))
+            assert np.all(np.abs(d - o) <= sc / 2 + 1e-6)
+
+    def test_leaves_are_regenerated_not_stored(self, encoded):
+        model, path, report = encoded
+        c = read_container(path)
+        assert c.arrays["proxy/features"].shape == (32, report.proxies)
+        assert not any("leaf" in n for n in c.arrays)
+        dec = codec.decode(path)
+        mask = dec.scene.metadata["proxy_mask"]
+        assert (~mask).sum() == report.leaves > 0
+
+    def test_fresh_process_decodes_bit_exactly(self, encoded, tmp_path):
+        _, path, report = encoded
+        out = tmp_path / "dec.npz"
+        code = ("import numpy as np, sys; from proxycodec import codec; m = codec.decode(sys.argv[1]); s = m.scene; "
+                "np.savez(sys.argv[2], positions=s.positions.numpy(), features=s.features.numpy(), "
+                "offsets=s.offsets.numpy(), scalings=s.scalings.numpy(), "
+                "**{'decoder/' + k: v for k, v in m.decoder.state_arrays().items()})")
+        subprocess.run([sys.executable, "-c", code, str(path), str(out)], check=True, timeout=120)
+        got = dict(np.load(out))
+        want = _arrays(report.model)
+        assert got.keys() == want.keys()
+        for k in want:
+            assert got[k].tobytes() == want[k].tobytes(), k
+
+    def test_scaffold_float32_grid_rule_and_off_grid_fallback(self, tmp_path):
+        m = tiny_model(120, rule="f32")
+        r = codec.encode(m, tmp_path / "a.pxc", **FAST)
+        assert r.meta["positions"]["mode"] == "grid"
+        _match(m.scene.positions.numpy(), codec.decode(tmp_path / "a.pxc").scene.positions.numpy())
+        m = tiny_model(120, on_grid=False)
+        r = codec.encode(m, tmp_path / "b.pxc", **FAST)
+        assert r.meta["positions"]["mode"] == "float32"
+        dec = codec.decode(tmp_path / "b.pxc")
+        _match(m.scene.positions.numpy(), dec.scene.positions.numpy())
+        _assert_same(dec, r.model)
+
+    def test_lossless_bits_and_predicted_offsets(self, tmp_path):
+        m = tiny_model(150)
+        r = codec.encode(m, tmp_path / "a.pxc", feature_bits=32, offset_bits=32, scaling_bits=32,
+                         weights_dtype="f32", predict_offsets=True, **FAST)
+        dec = codec.decode(tmp_path / "a.pxc")
+        _assert_same(dec, r.model)
+        idx = _match(m.scene.positions.numpy(), dec.scene.positions.numpy())
+        mask = dec.scene.metadata["proxy_mask"]
+        assert np.array_equal(dec.scene.features.numpy()[mask], m.scene.features.numpy()[idx][mask])
+        assert np.array_equal(dec.scene.scalings.numpy(), m.scene.scalings.numpy()[idx])
+        assert np.array_equal(dec.scene.offsets.numpy()[mask], m.scene.offsets.numpy()[idx][mask])
+        assert "proxy/offsets" in read_container(tmp_path / "a.pxc").arrays
+        assert r.meta["offsets"] == "predicted"
+        for k, v in m.decoder.state_arrays().items():
+            assert np.array_equal(dec.decoder.state_arrays()[k], v)
+
+    def test_decoded_model_renders(self, encoded):
+        _, path, _ = encoded
+        r = codec.render(path, 0.5, backend="reference")
+        assert len(r) == 2 and r[0].image.shape == (12, 16, 3) and torch.isfinite(r[0].image).all()
+
+
+class TestDeterminism:
+    def test_same_input_and_seed_same_bytes(self, tmp_path):
+        m = tiny_model(200)
+        codec.encode(m, tmp_path / "a.pxc", seed=5, **FAST)
+        codec.encode(m, tmp_path / "b.pxc", seed=5, **FAST)
+        codec.encode(m, tmp_path / "c.pxc", seed=6, **FAST)
+        a, b, c = ((tmp_path / f"{x}.pxc").read_bytes() for x in "abc")
+        assert a == b
+        assert a != c
+
+    def test_input_order_does_not_matter_for_the_stored_anchors(self, tmp_path):
+        m = tiny_model(200)
+        perm = torch.from_numpy(np.random.default_rng(0).permutation(200))
+        shuffled = SceneModel(m.scene.subset(perm), m.decoder, m.cameras, m.background)
+        codec.encode(m, tmp_path / "a.pxc", **FAST)
+        codec.encode(shuffled, tmp_path / "b.pxc", **FAST)
+        a, b = read_container(tmp_path / "a.pxc"), read_container(tmp_path / "b.pxc")
+        for k in ("anchors/grid", "anchors/proxy_mask", "anchors/scalings", "anchors/offsets", "proxy/features"):
+            assert np.array_equal(a.arrays[k], b.arrays[k]), k
+
+
+class TestFittedPredictor:
+    def test_stage2_predictor_and_mask_from_the_weights_file_are_used_as_is(self, tmp_path):
+        from proxycodec.model import weights_path_for
+        from proxycodec.proxy import PredictorConfig, ResidualPredictor, select_proxies
+
+        m = tiny_model(120)
+        ply, w = m.save(tmp_path / "s.ply")
+        mask = select_proxies(m.scene.positions, 0.2, 0.4, seed=11)
+        torch.manual_seed(3)
+        pred = ResidualPredictor(PredictorConfig(hidden=16, n_blocks=1, dist_ref=VOXEL))
+        for p in pred.parameters():
+            torch.nn.init.normal_(p, std=0.05)
+        c = read_container(w)
+        meta = {**c.meta, "fit": {"predictor": pred.config.to_json()}}
+        arrays = {**c.arrays, **{f"predictor/{k}": v for k, v in pred.state_arrays().items()},
+                  "proxy_mask": mask.astype(np.uint8)}
+        write_container(weights_path_for(ply), meta, arrays)
+        r = codec.encode(ply, tmp_path / "s.pxc", **FAST)
+        assert r.meta["proxy"]["source"] == "fit" and r.training.iters == 0
+        dec = codec.decode(tmp_path / "s.pxc")
+        idx = _match(m.scene.positions.numpy(), dec.scene.positions.numpy())
+        assert np.array_equal(dec.scene.metadata["proxy_mask"], mask[idx])
+        got = ResidualPredictor.from_arrays(
+            PredictorConfig.from_json(r.meta["predictor"]),
+            {k[10:]: v for k, v in read_container(tmp_path / "s.pxc").arrays.items() if k.startswith("predictor/")})
+        for k, v in pred.state_arrays().items():
+            assert np.array_equal(got.state_arrays()[k], v.astype(np.float16).astype(np.float32)), k
+        r2 = codec.encode(ply, tmp_path / "t.pxc", use_fitted=False, **FAST)
+        assert r2.meta["proxy"]["source"] == "encode"
+
+
+class TestEncodeErrors:
+    def test_bad_knobs(self, tmp_path):
+        m = tiny_model(50)
+        for kw in ({"proxy_ratio": 0.0}, {"feature_bits": 17}, {"weights_dtype": "f8"}, {"zstd_level": 0},
+                   {"cell_size": -1.0}, {"nonsense": 1}):
+            with pytest.raises(ProxycodecError):
+                codec.encode(m, tmp_path / "x.pxc", **kw)
+        assert not (tmp_path / "x.pxc").exists()
+
+    def test_images_is_a_clear_not_implemented_error(self, tmp_path):
+        with pytest.raises(ProxycodecError, match="not implemented"):
+            codec.encode(tiny_model(50), tmp_path / "x.pxc", images="somewhere")
+
+    def test_scene_sections_inconsistent_with_metadata(self, encoded, tmp_path):
+        _, path, _ = encoded
+        c = read_container(path)
+        cases = {
+            "wrong count": ({**c.meta, "anchors": {**c.meta["anchors"], "count": c.meta["anchors"]["count"] + 1}},
+                            c.arrays),
+            "missing section": (c.meta, {k: v for k, v in c.arrays.items() if k != "anchors/scalings"}),
+            "wrong dtype": (c.meta, {**c.arrays, "proxy/features": c.arrays["proxy/features"].astype(np.uint16)}),
+            "bad quant": ({**c.meta, "quant": {**c.meta["quant"], "features": {"bits": 8, "offset": [0.0]}}},
+                          c.arrays),
+            "future scene format": ({**c.meta, "scene_format": 99}, c.arrays),
+            "not a scene": ({**c.meta, "kind": "proxycodec.weights"}, c.arrays),
+            "garbage metadata": ({**c.meta, "positions": "grid"}, c.arrays),
+            "missing weights": (c.meta, {k: v for k, v in c.arrays.items() if not k.startswith("predictor/")}),
+        }
+        for name, (meta, arrays) in cases.items():
+            p = tmp_path / "bad.pxc"
+            write_container(p, meta, arrays, level=1)
+            with pytest.raises(ContainerError):
+                codec.decode(p)
+
+
+class TestStats:
+    def test_container_stats_fields(self, encoded):
+        model, path, report = encoded
+        s = codec.stats(path)
+        for k in ("anchors", "proxies", "leaves", "sections", "bits_per_anchor", "source_bytes", "ratio",
+                  "format_version", "metadata", "file_bytes"):
+            assert k in s, k
+        assert s["anchors"] == model.scene.num_anchors == s["proxies"] + s["leaves"]
+        assert s["file_bytes"] == path.stat().st_size
+        assert s["header_and_toc_bytes"] + sum(x["stored_bytes"] for x in s["sections"]) == s["file_bytes"]
+        assert s["format_version"] == 1 and s["metadata"]["kind"] == "proxycodec.scene"
+        assert s["bits_per_anchor"] == pytest.approx(8 * s["file_bytes"] / s["anchors"])
+        assert s["source_bytes"] > s["file_bytes"] and s["ratio"] == pytest.approx(s["source_bytes"] / s["file_bytes"])
+        names = {x["name"] for x in s["sections"]}
+        assert {"meta", "anchors/grid", "anchors/proxy_mask", "anchors/scalings", "proxy/features",
+                "anchors/offsets"} <= names
+
+    def test_ply_stats(self, tmp_path):
+        m = tiny_model(60)
+        ply, w = m.save(tmp_path / "s.ply")
+        s = codec.stats(ply)
+        assert s["type"] == "ply" and s["anchors"] == 60
+        assert s["total_bytes"] == ply.stat().st_size + w.stat().st_size
+        assert s["raw_bytes_by_group"]["features"] == 60 * 32 * 4
+
+
+class TestCli:
+    def test_encode_stats_decode_ply(self, tmp_path):
+        m = tiny_model(150)
+        ply, _ = m.save(tmp_path / "s.ply")
+        run = CliRunner().invoke
+        r = run(cli, ["encode", str(ply), "--predictor-iters", "10", "--zstd-level", "3", "--seed", "1"])
+        assert r.exit_code == 0, r.output
+        pxc = tmp_path / "s.pxc"
+        assert pxc.exists() and "predictor" in r.output  # progress lines (stderr is mixed in by CliRunner)
+        r = run(cli, ["stats", str(pxc), "--json"])
+        assert r.exit_code == 0 and json.loads(r.output)["anchors"] == 150
+        r = run(cli, ["stats", str(pxc)])
+        assert r.exit_code == 0 and "bits/anchor" in r.output and "proxy/features" in r.output
+        r = run(cli, ["stats", str(ply)])
+        assert r.exit_code == 0 and "150 anchors" in r.output
+        cams = tmp_path / "cams.json"
+        cams.write_text(json.dumps([c.to_json() for c in m.cameras[:1]]))
+        out = tmp_path / "renders"
+        r = run(cli, ["decode", str(pxc), "--res", "0.3,0.5", "--cameras", str(cams), "-o", str(out),
+                      "--ply", str(tmp_path / "g.ply"), "--ply-res", "0.5", "--backend", "reference"])
+        assert r.exit_code == 0, r.output
+        assert sorted(p.name for p in out.iterdir()) == ["view000_res0.300.png", "view000_res0.500.png"]
+        from proxycodec.formats.inria_ply import read_inria_ply
+
+        g = read_inria_ply(tmp_path / "g.ply")
+        assert g.n_gaussians > 0 and g.sh_degree == 0
+        assert np.allclose(np.linalg.norm(g.quats, axis=1), 1.0, atol=1e-5)
+
+    def test_user_errors_are_one_line(self, tmp_path):
+        m = tiny_model(50)
+        ply, _ = m.save(tmp_path / "s.ply")
+        run = CliRunner().invoke
+        for args in (["encode", str(ply), "--images", str(tmp_path)],
+                     ["encode", str(ply), "--proxy-ratio", "2"],
+                     ["decode", str(ply)],
+                     ["decode", str(tmp_path / "missing.pxc")],
+                     ["stats", str(tmp_path / "missing.pxc")]):
+            r = run(cli, args)
+            assert r.exit_code == 2, (args, r.output)
+            assert "Traceback" not in r.output and r.output.strip().count("\n") == 0, r.output
+            assert r.output.startswith("error: ")

@@ -1,0 +1,225 @@
+"""Proxy selection, nearest-proxy assignment, the residual predictor and L_recon (proxycodec.proxy)."""
+
+from __future__ import annotations
+
+import math
+from fractions import Fraction
+
+import numpy as np
+import pytest
+import torch
+
+from proxycodec.errors import ProxycodecError
+from proxycodec.proxy import (
+    PredictorConfig, ResidualPredictor, TrainConfig, default_cell_size, nearest_proxy, predictor_inputs,
+    recon_loss, select_proxies, train_predictor,
+)
+
+
+def grid_points(n=400, size=(16, 16, 4), voxel=0.05, seed=0) -> np.ndarray:
+    """``n`` distinct anchors on a voxel grid (float32, as Scaffold-GS stores them)."""
+    rng = np.random.default_rng(seed)
+    cells = np.stack(np.meshgrid(*[np.arange(s) for s in size], indexing="ij"), -1).reshape(-1, 3)
+    pick = rng.choice(len(cells), n, replace=False)
+    return (cells[pick] * voxel).astype(np.float32)
+
+
+class TestSelectProxies:
+    @pytest.mark.parametrize("ratio", [0.3, 0.1, 0.5, 1 / 3, 1.0])
+    def test_per_cell_count_is_ceil_rho_n(self, ratio):
+        p = grid_points(600)
+        eps = 0.15
+        mask = select_proxies(p, eps, ratio, seed=3)
+        cells = np.floor(p.astype(np.float64) / eps).astype(np.int64)
+        _, inv = np.unique(cells, axis=0, return_inverse=True)
+        inv = inv.reshape(-1)
+        for c in range(inv.max() + 1):
+            members = inv == c
+            n = int(members.sum())
+            assert int(mask[members].sum()) == math.ceil(Fraction(str(ratio)) * n if ratio != 1 / 3
+                                                         else Fraction(1, 3) * n)
+
+    def test_every_occupied_cell_has_a_proxy(self):
+        p = grid_points(300)
+        mask = select_proxies(p, 0.1, 0.05, seed=0)
+        cells = np.floor(p.astype(np.float64) / 0.1).astype(np.int64)
+        occupied = {tuple(c) for c in cells}
+        with_proxy = {tuple(c) for c in cells[mask]}
+        assert occupied == with_proxy
+
+    def test_seed_deterministic_and_seed_dependent(self):
+        p = grid_points(500)
+        a = select_proxies(p, 0.15, 0.3, seed=7)
+        b = select_proxies(p, 0.15, 0.3, seed=7)
+        c = select_proxies(p, 0.15, 0.3, seed=8)
+        assert np.array_equal(a, b)
+        assert not np.array_equal(a, c)
+        assert a.sum() == c.sum()  # the count per cell does not depend on the seed
+
+    def test_independent_of_input_order(self):
+        p = grid_points(500)
+        perm = np.random.default_rng(1).permutation(len(p))
+        a = select_proxies(p, 0.15, 0.3, seed=2)
+        b = select_proxies(p[perm], 0.15, 0.3, seed=2)
+        assert np.array_equal(a[perm], b)
+
+    def test_accepts_tensors_and_rejects_bad_parameters(self):
+        p = grid_points(50)
+        assert np.array_equal(select_proxies(torch.from_numpy(p), 0.1, 0.3, 0), select_proxies(p, 0.1, 0.3, 0))
+        with pytest.raises(ProxycodecError):
+            select_proxies(p, 0.1, 0.0, 0)
+        with pytest.raises(ProxycodecError):
+            select_proxies(p, -1.0, 0.3, 0)
+        assert select_proxies(np.zeros((0, 3)), 0.1, 0.3, 0).shape == (0,)
+
+    def test_default_cell_size_holds_about_ten_anchors(self):
+        voxel = 0.05
+        cells = np.stack(np.meshgrid(np.arange(40), np.arange(40), [0], indexing="ij"), -1).reshape(-1, 3)
+        p = (cells * voxel).astype(np.float32)  # a dense plane: m x m anchors per cell
+        eps = default_cell_size(p, voxel)
+        m = eps / voxel
+        assert m == pytest.approx(3)  # 9 per cell is the closest to 10
+        cells_used = np.unique(np.floor(p / eps), axis=0)
+        assert 6 <= len(p) / len(cells_used) <= 15
+
+
+class TestNearestProxy:
+    def brute(self, p, mask):
+        p = p.astype(np.float64)
+        pidx = np.flatnonzero(mask)
+        out = np.arange(len(p))
+        for i in np.flatnonzero(~mask):
+            d = ((p[pidx] - p[i]) ** 2).sum(1)
+            out[i] = pidx[d == d.min()].min()
+        return out
+
+    @pytest.mark.parametrize("seed", [0, 1, 2])
+    def test_matches_brute_force_with_ties_to_smallest_index(self, seed):
+        p = grid_points(300, size=(10, 10, 3), seed=seed)  # a grid: equidistant proxies everywhere
+        mask = select_proxies(p, 0.15, 0.3, seed)
+        assert np.array_equal(nearest_proxy(p, mask), self.brute(p, mask))
+
+    @pytest.mark.parametrize("seed", [0, 1])
+    def test_kd_tree_path_equals_exhaustive_path(self, seed, monkeypatch):
+        import proxycodec.proxy as proxy
+
+        p = grid_points(400, size=(10, 10, 4), seed=seed)
+        mask = select_proxies(p, 0.15, 0.3, seed)
+        exhaustive = nearest_proxy(p, mask)
+        monkeypatch.setattr(proxy, "BRUTE_FORCE_PAIRS", 0)
+        assert np.array_equal(nearest_proxy(p, mask), exhaustive)
+
+    def test_many_ties_beyond_the_candidate_list(self, monkeypatch):
+        import proxycodec.proxy as proxy
+
+        monkeypatch.setattr(proxy, "BRUTE_FORCE_PAIRS", 0)
+        # A leaf at the centre of a ring of 24 equidistant proxies: more ties than the kd-tree candidates.
+        ang = np.linspace(0, 2 * np.pi, 24, endpoint=False)
+        ring = np.c_[np.cos(ang), np.sin(ang), np.zeros(24)]
+        p = np.concatenate([ring, [[0.0, 0.0, 0.0]]])
+        mask = np.r_[np.ones(24, bool), False]
+        assert np.array_equal(nearest_proxy(p, mask), self.brute(p, mask))
+
+    def test_proxies_map_to_themselves_and_no_proxy_is_an_error(self):
+        p = grid_points(50)
+        mask = np.zeros(50, bool)
+        mask[::3] = True
+        nn = nearest_proxy(p, mask)
+        assert np.array_equal(nn[mask], np.flatnonzero(mask))
+        assert mask[nn].all()
+        with pytest.raises(ProxycodecError):
+            nearest_proxy(p, np.zeros(50, bool))
+
+
+def smooth_scene(n=500, seed=0):
+    p = grid_points(n, seed=seed)
+    rng = np.random.default_rng(seed)
+    freq = rng.normal(size=(32, 3)) * 2.0
+    feats = np.sin(p.astype(np.float64) @ freq.T + rng.uniform(0, 6.28, 32)).astype(np.float32)
+    return torch.from_numpy(p), torch.from_numpy(feats)
+
+
+class TestPredictor:
+    def test_untrained_predictor_is_the_proxy_copy(self):
+        pos, feats = smooth_scene(100)
+        mask = select_proxies(pos, 0.15, 0.3, 0)
+        nn = torch.from_numpy(nearest_proxy(pos, mask))
+        leaves = torch.from_numpy(np.flatnonzero(~mask))
+        pred = ResidualPredictor(PredictorConfig(dist_ref=0.05))
+        f, o = pred.predict(pos, feats, nn, leaves)
+        assert o is None
+        assert torch.equal(f, feats[nn[leaves]])
+
+    def test_training_beats_the_proxy_copy_baseline(self):
+        torch.manual_seed(0)
+        pos, feats = smooth_scene(500)
+        mask = select_proxies(pos, 0.15, 0.3, 0)
+        pred = ResidualPredictor(PredictorConfig(hidden=32, dist_ref=0.05))
+        r = train_predictor(pred, pos, feats, mask, config=TrainConfig(iters=150, lr=3e-3))
+        # the baseline is the proxy-copy prediction over all leaves
+        nn = nearest_proxy(pos, mask)
+        leaves = np.flatnonzero(~mask)
+        base = float(recon_loss(feats[nn[leaves]], feats[leaves]))
+        assert r.baseline_loss == pytest.approx(base, rel=1e-5)
+        assert r.final_loss < 0.7 * r.baseline_loss
+        assert not pred.training
+
+    def test_offsets_prediction_shapes_and_training(self):
+        pos, feats = smooth_scene(200)
+        offs = torch.randn(200, 10, 3) * 0.1
+        mask = select_proxies(pos, 0.15, 0.3, 0)
+        pred = ResidualPredictor(PredictorConfig(predict_offsets=True, hidden=16, n_blocks=1, dist_ref=0.05))
+        r = train_predictor(pred, pos, feats, mask, offsets=offs, config=TrainConfig(iters=20))
+        assert r.final_loss <= r.baseline_loss * 1.01
+        nn = torch.from_numpy(nearest_proxy(pos, mask))
+        leaves = torch.from_numpy(np.flatnonzero(~mask))
+        f, o = pred.predict(pos, feats, nn, leaves, offs)
+        assert f.shape == (len(leaves), 32) and o.shape == (len(leaves), 10, 3)
+        with pytest.raises(ProxycodecError):
+            train_predictor(pred, pos, feats, mask, config=TrainConfig(iters=1))
+
+    def test_state_arrays_round_trip_and_bad_weights(self):
+        cfg = PredictorConfig(hidden=16, n_blocks=2, dist_ref=0.1)
+        a = ResidualPredictor(cfg)
+        for p in a.parameters():
+            torch.nn.init.normal_(p)
+        b = ResidualPredictor.from_arrays(cfg, a.state_arrays())
+        x, g = torch.randn(5, 32), torch.randn(5, cfg.n_in - 32)
+        assert torch.equal(a(x, g)[0], b(x, g)[0])
+        arr = a.state_arrays()
+        with pytest.raises(ProxycodecError, match="missing"):
+            ResidualPredictor.from_arrays(cfg, {k: v for k, v in arr.items() if k != "head.bias"})
+        with pytest.raises(ProxycodecError, match="shape"):
+            ResidualPredictor.from_arrays(cfg, {**arr, "head.bias": np.zeros(3, np.float32)})
+        with pytest.raises(ProxycodecError, match="NaN"):
+            ResidualPredictor.from_arrays(cfg, {**arr, "head.bias": np.full(32, np.nan, np.float32)})
+
+    def test_config_json_round_trip_and_validation(self):
+        cfg = PredictorConfig(hidden=48, n_blocks=3, predict_offsets=True, dist_ref=0.01)
+        assert PredictorConfig.from_json(cfg.to_json()) == cfg
+        for bad in ({"hidden": 0}, {"hidden": "64"}, {"n_blocks": 1.5}, {"dist_ref": -1}, {"predict_offsets": 1}):
+            with pytest.raises(ProxycodecError):
+                PredictorConfig.from_json({**cfg.to_json(), **bad})
+
+    def test_inputs_are_finite_for_coincident_points(self):
+        x = torch.zeros(3, 3)
+        g = predictor_inputs(x, x, 0.05, 4, 4)
+        assert torch.isfinite(g).all() and g.shape == (3, 9 + 27)
+
+
+class TestReconLoss:
+    def test_formula(self):
+        a, b = torch.randn(7, 32), torch.randn(7, 32)
+        want = ((a - b) ** 2).sum(1).mean() + 0.1 * (1 - torch.nn.functional.cosine_similarity(a, b, dim=1)).mean()
+        assert torch.allclose(recon_loss(a, b), want)
+        assert float(recon_loss(a, a)) == pytest.approx(0.0, abs=1e-6)
+        assert float(recon_loss(a[:0], b[:0])) == 0.0
+
+    def test_gradient_is_finite_at_zero_vectors(self):
+        a = torch.zeros(4, 32, requires_grad=True)
+        recon_loss(a, torch.zeros(4, 32)).backward()
+        assert torch.isfinite(a.grad).all()
+
+    def test_shape_mismatch(self):
+        with pytest.raises(ProxycodecError):
+            recon_loss(torch.zeros(3, 32), torch.zeros(3, 31))
