@@ -124,33 +124,43 @@ def project_gaussians(
     shift_t = torch.as_tensor(shift, dtype=dt, device=dev)
 
     # Cheap culls first, on centres only: depth, then opacity (gate <= 1, so alpha < 1/255 can never show).
-    p_cam = (means - shift_t) @ R.T  # [N, 3]
+    # Small 3x3 products are written out elementwise: torch's batched matmul is slow for them on CPU.
+    d = means - shift_t
+    p_cam = d[:, :1] * R[:, 0] + d[:, 1:2] * R[:, 1] + d[:, 2:3] * R[:, 2]  # [N, 3] = d @ R^T
     z = p_cam[:, 2]
-    keep = (z > near) & (z < far) & (opacities >= ALPHA_MIN) & torch.isfinite(p_cam).all(-1)
-    idx = keep.nonzero().squeeze(1)
-    p_cam, z = p_cam[idx], z[idx]
+    with torch.no_grad():
+        keep = (z > near) & (z < far) & (opacities >= ALPHA_MIN) & torch.isfinite(p_cam).all(-1)
+        idx = keep.nonzero().squeeze(1) if not bool(keep.all()) else None
+    if idx is not None:
+        p_cam, z, quats, scales, opacities, colors = (t[idx] for t in (p_cam, z, quats, scales, opacities, colors))
+    else:
+        idx = torch.arange(means.shape[0], device=dev)
 
     # EWA: Sigma2D = J W Sigma W^T J^T, with the tangent-plane coordinates clamped as gsplat does so that Gaussians
     # far outside the view (or straddling the near plane) do not produce huge Jacobians.
     tan_x, tan_y = 0.5 * W / fx, 0.5 * H / fy
     lim_xp, lim_xn = (W - cx) / fx + 0.3 * tan_x, cx / fx + 0.3 * tan_x
     lim_yp, lim_yn = (H - cy) / fy + 0.3 * tan_y, cy / fy + 0.3 * tan_y
-    tx = z * torch.clamp(p_cam[:, 0] / z, -lim_xn, lim_xp)
-    ty = z * torch.clamp(p_cam[:, 1] / z, -lim_yn, lim_yp)
-    zero = torch.zeros_like(z)
-    J = torch.stack([fx / z, zero, -fx * tx / (z * z), zero, fy / z, -fy * ty / (z * z)], -1).reshape(-1, 2, 3)
-    T = J @ R  # [n, 2, 3]
-    cov3 = covariance_3d(quats[idx], scales[idx])
-    cov2 = T @ cov3 @ T.transpose(-1, -2)
-    a, b, c = cov2[:, 0, 0], cov2[:, 0, 1], cov2[:, 1, 1]
+    inv_z = 1.0 / z
+    tx = torch.clamp(p_cam[:, 0] * inv_z, -lim_xn, lim_xp)
+    ty = torch.clamp(p_cam[:, 1] * inv_z, -lim_yn, lim_yp)
+    # Rows of T = J R: T0 = fx/z (R0 - tx R2), T1 = fy/z (R1 - ty R2).
+    T0 = (fx * inv_z)[:, None] * (R[0] - tx[:, None] * R[2])
+    T1 = (fy * inv_z)[:, None] * (R[1] - ty[:, None] * R[2])
+    # Sigma = M M^T with M = R_q S; then U = T M, so Sigma2D = U U^T.
+    M = quat_to_rotmat(quats) * scales[:, None, :]  # [n, 3, 3]
+    U0 = (T0[:, :, None] * M).sum(1)  # [n, 3] = T0 @ M
+    U1 = (T1[:, :, None] * M).sum(1)
+    a, b, c = (U0 * U0).sum(1), (U0 * U1).sum(1), (U1 * U1).sum(1)
     det_u = a * c - b * b  # undilated: what the gate measures
     a_d, c_d = a + DILATION, c + DILATION
     det = (a_d * c_d - b * b).clamp_min(DILATION * DILATION)  # dilation bounds det from below (0.09 px^4)
-    conics = torch.stack([c_d / det, -b / det, a_d / det], -1)
+    inv_det = 1.0 / det
+    conics = torch.stack([c_d * inv_det, -b * inv_det, a_d * inv_det], -1)
 
     g = coverage_gate(det_u, gate)
-    op = opacities[idx] * g
-    means2d = torch.stack([fx * p_cam[:, 0] / z + cx, fy * p_cam[:, 1] / z + cy], -1)
+    op = opacities * g
+    means2d = torch.stack([fx * p_cam[:, 0] * inv_z + cx, fy * p_cam[:, 1] * inv_z + cy], -1)
 
     # Conservative footprint: alpha = op * exp(-m^2/2) >= 1/255  <=>  m^2 <= 2 ln(255 op).
     with torch.no_grad():
@@ -165,6 +175,6 @@ def project_gaussians(
         )
         sel = vis.nonzero().squeeze(1)
     return Projected(
-        means2d=means2d[sel], conics=conics[sel], opacities=op[sel], colors=colors[idx][sel], depths=z[sel],
+        means2d=means2d[sel], conics=conics[sel], opacities=op[sel], colors=colors[sel], depths=z[sel],
         extent=ext[sel], index=idx[sel], gate=g[sel].detach(), width=W, height=H,
     )
