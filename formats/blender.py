@@ -29,8 +29,10 @@ def _read_json(path: Path) -> dict:
             meta = json.loads(fh.read().decode("utf-8"))
     except FileNotFoundError:
         raise ProxycodecError("file not found", path) from None
-    except (UnicodeDecodeError, json.JSONDecodeError) as e:
+    except (UnicodeDecodeError, ValueError) as e:  # ValueError: JSONDecodeError, integers of > 4300 digits
         raise ProxycodecError(f"invalid JSON: {e}", path) from None
+    except RecursionError:
+        raise ProxycodecError("invalid JSON: nested too deeply", path) from None
     if not isinstance(meta, dict):
         raise ProxycodecError("transforms file must hold a JSON object", path)
     return meta

@@ -144,6 +144,15 @@ def qvec_to_rotmat(q: Sequence[float]) -> np.ndarray:
     )
 
 
+def _valid_pose(q: np.ndarray, t: np.ndarray) -> bool:
+    """Finite translation and a quaternion whose norm is finite and not ~0 (so it can be normalised)."""
+    if not (np.isfinite(q).all() and np.isfinite(t).all()):
+        return False
+    with np.errstate(over="ignore"):
+        n = float(np.linalg.norm(q))
+    return bool(np.isfinite(n) and n >= 1e-12)
+
+
 # -------------------------------------------------------------------------------------- binary reading
 class _Bin:
     """Bounded little-endian reader over a memory-mapped (or in-memory) file."""
@@ -256,8 +265,8 @@ def read_images_bin(path: str | os.PathLike, *, keypoints: bool = False) -> list
                 del kp  # release the view of the mapping before it is closed
             r.pos += 24 * n2d
             q, t = np.array([qw, qx, qy, qz]), np.array([tx, ty, tz])
-            if not (np.isfinite(q).all() and np.isfinite(t).all()) or np.linalg.norm(q) < 1e-12:
-                raise ProxycodecError(f"image {iid} ({name}) has an invalid pose", path)
+            if not _valid_pose(q, t):
+                raise ProxycodecError(f"image {iid} ({name!r}) has an invalid pose", path)
             images.append(ColmapImage(int(iid), q, t, int(cid), name, int(n2d), xys, ids))
         r.finish()
         return images
@@ -389,7 +398,7 @@ def read_images_txt(path: str | os.PathLike, *, keypoints: bool = False) -> list
         except (IndexError, ValueError):
             raise ProxycodecError(f"line {i}: malformed image line", path) from None
         if i >= len(lines):
-            raise ProxycodecError(f"image {iid} ({name}) has no keypoint line", path)
+            raise ProxycodecError(f"image {iid} ({name!r}) has no keypoint line", path)
         kp_line = lines[i]
         i += 1
         n_tok = len(kp_line.split())
@@ -403,11 +412,14 @@ def read_images_txt(path: str | os.PathLike, *, keypoints: bool = False) -> list
                 kp = np.array(kp_line.split(), dtype=np.float64).reshape(-1, 3)
             except ValueError:
                 raise ProxycodecError(f"line {i}: malformed keypoint line", path) from None
-            xys, ids = kp[:, :2].copy(), kp[:, 2].astype(np.int64)
+            pid = kp[:, 2]
+            if not (np.isfinite(kp).all() and np.all(pid == np.round(pid)) and np.all(np.abs(pid) < 2.0**63)):
+                raise ProxycodecError(f"line {i}: keypoints must be finite with integer POINT3D_IDs", path)
+            xys, ids = kp[:, :2].copy(), pid.astype(np.int64)
         elif keypoints:
             xys, ids = np.zeros((0, 2)), np.zeros(0, np.int64)
-        if not (np.isfinite(q).all() and np.isfinite(t).all()) or np.linalg.norm(q) < 1e-12:
-            raise ProxycodecError(f"image {iid} ({name}) has an invalid pose", path)
+        if not _valid_pose(q, t):
+            raise ProxycodecError(f"image {iid} ({name!r}) has an invalid pose", path)
         images.append(ColmapImage(iid, q, t, cid, name, n_tok // 3, xys, ids))
     return images
 
@@ -435,8 +447,11 @@ def read_points3d_txt(path: str | os.PathLike) -> tuple[np.ndarray, ...]:
     try:
         tr = np.array(track, dtype=np.int64).reshape(-1, 2)
         rgb_a = np.array(rgb, dtype=np.int64).reshape(-1, 3)
-    except ValueError:
-        raise ProxycodecError("malformed track or colour values", path) from None
+        ids_a = np.asarray(ids, dtype=np.int64)
+    except (ValueError, OverflowError):  # OverflowError: an integer beyond int64
+        raise ProxycodecError("malformed point id, track or colour values", path) from None
+    if tr.size and (tr.min() < np.iinfo(np.int32).min or tr.max() > np.iinfo(np.int32).max):
+        raise ProxycodecError("track image ids / keypoint indices do not fit in 32 bits", path)
     if rgb_a.size and (rgb_a.min() < 0 or rgb_a.max() > 255):
         raise ProxycodecError("point colours must be in 0..255", path)
     xyz_a = np.array(xyz, dtype=np.float64).reshape(-1, 3)
@@ -445,7 +460,7 @@ def read_points3d_txt(path: str | os.PathLike) -> tuple[np.ndarray, ...]:
     offsets = np.zeros(len(lengths) + 1, np.int64)
     np.cumsum(np.asarray(lengths, dtype=np.int64), out=offsets[1:])
     return (
-        np.asarray(ids, dtype=np.int64),
+        ids_a,
         xyz_a,
         rgb_a.astype(np.uint8),
         np.asarray(err, dtype=np.float64),
@@ -482,7 +497,7 @@ def read_colmap_model(sparse_dir: str | os.PathLike, *, keypoints: bool = False)
     imgs = read_images_bin(p, keypoints=keypoints) if binary else read_images_txt(p, keypoints=keypoints)
     for im in imgs:
         if im.camera_id not in cams:
-            raise ProxycodecError(f"image {im.id} ({im.name}) refers to missing camera {im.camera_id}", p)
+            raise ProxycodecError(f"image {im.id} ({im.name!r}) refers to missing camera {im.camera_id}", p)
     if len({im.id for im in imgs}) != len(imgs):
         raise ProxycodecError("image ids repeat", p)
     if (d / "points3D.bin").is_file():

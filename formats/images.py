@@ -52,7 +52,7 @@ def image_file_size(path: str | os.PathLike) -> tuple[int, int]:
                 return int(im.size[0]), int(im.size[1])
     except FileNotFoundError:
         raise ProxycodecError("image file not found", path) from None
-    except (UnidentifiedImageError, OSError, SyntaxError) as e:
+    except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as e:  # ValueError: NUL in the path
         raise ProxycodecError(f"cannot read image header: {e}", path) from None
 
 
@@ -213,7 +213,7 @@ class PosedImages:
             raise ProxycodecError("PosedImages: every camera needs an image_path")
         bounds = np.asarray(self.bounds, dtype=np.float64)
         if bounds.shape != (2, 3) or not np.isfinite(bounds).all() or (bounds[0] > bounds[1]).any():
-            raise ProxycodecError(f"PosedImages: bounds must be a finite [2, 3] box, got {bounds!r}")
+            raise ProxycodecError(f"PosedImages: bounds must be a finite [2, 3] box, got {bounds.tolist()}")
         bg = tuple(float(v) for v in self.background)
         if len(bg) != 3 or not all(0.0 <= v <= 1.0 for v in bg):
             raise ProxycodecError(f"background must be 3 values in [0, 1], got {self.background!r}")

@@ -354,10 +354,13 @@ def indexed_names(path, header: PlyHeader, prefix: str) -> list[str]:
             idx.append(int(m.group(1)))
     idx.sort()
     if idx != list(range(len(idx))):
-        missing = sorted(set(range(max(idx) + 1)) - set(idx))
+        # The first gap; never materialise range(max(idx)): a hostile name like f_rest_99999999999 must not
+        # make us allocate.
+        present = set(idx)
+        first_missing = next(i for i in range(len(idx) + 1) if i not in present)
         raise _fail(
             path,
-            f"PLY properties {prefix}* are not numbered 0..{len(idx) - 1}: {prefix}{missing[0]} is missing",
+            f"PLY properties {prefix}* are not numbered 0..{len(idx) - 1}: {prefix}{first_missing} is missing",
         )
     return [f"{prefix}{i}" for i in range(len(idx))]
 

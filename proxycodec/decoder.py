@@ -46,6 +46,13 @@ class DecoderConfig:
         for k in ("feat_dim", "n_offsets", "hidden", "film_hidden"):
             if int(getattr(self, k)) < 1 or int(getattr(self, k)) > 4096:
                 raise ProxycodecError(f"decoder {k} = {getattr(self, k)} is out of range")
+        # Frequencies beyond ~20 are meaningless in float32 (2^k pi x aliases); a hostile file must not make the
+        # embedding MLP's input (and its allocation) arbitrarily wide.
+        for k in ("pe_pos_freqs", "pe_res_freqs"):
+            if not 0 <= int(getattr(self, k)) <= 32:
+                raise ProxycodecError(f"decoder {k} = {getattr(self, k)} is out of range (0..32)")
+        if len(self.scene_center) != 3 or not all(math.isfinite(float(v)) for v in self.scene_center):
+            raise ProxycodecError(f"scene centre must be 3 finite numbers, got {self.scene_center!r}")
 
     def to_json(self) -> dict:
         d = asdict(self)
@@ -56,8 +63,12 @@ class DecoderConfig:
     @staticmethod
     def from_json(d: dict) -> "DecoderConfig":
         try:
+            if not isinstance(d, dict) or not isinstance(d.get("gate", {}), dict):
+                raise ProxycodecError("bad decoder configuration: expected a JSON object (with an object 'gate')")
             d = dict(d)
             gate = GateConfig.from_json(d.pop("gate", {}))
+            if not all(math.isfinite(v) for v in (gate.kappa, gate.eta)):
+                raise ProxycodecError("bad decoder configuration: gate kappa and eta must be finite")
             known = {f for f in DecoderConfig.__dataclass_fields__ if f != "gate"}
             kw = {k: v for k, v in d.items() if k in known}
             if "scene_center" in kw:

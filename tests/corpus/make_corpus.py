@@ -1,0 +1,195 @@
+"""Regenerate the hostile-file regression corpus: ``python tests/corpus/make_corpus.py``.
+
+Each file sits in a folder named after the reader in ``tests/test_fuzz_readers.py::READERS`` that must refuse it
+with ``ProxycodecError`` (files whose name starts with ``ok_`` must be accepted). Files marked ``bug_`` once made a
+reader raise something else (or allocate without bound); they are kept as regressions.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import struct
+import sys
+import zlib
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE.parent))
+
+import test_fuzz_readers as F
+from proxycodec.formats import container
+
+
+def main() -> None:
+    S = F.make_seeds()
+    files: dict[str, dict[str, bytes]] = {k: {} for k in F.READERS}
+
+    def add(reader, name, data):
+        files[reader][name] = data
+
+    # ---- PLY (generic, scaffold, inria)
+    le = S["ply_le"]
+    head_end = le.index(b"end_header\n") + 11
+    add("ply_le", "ok_seed.ply", le)
+    add("ply_le", "truncated_payload.ply", le[:-5])
+    add("ply_le", "truncated_header.ply", le[: head_end - 4])
+    add("ply_le", "count_1e12.ply", le.replace(b"element vertex 3", b"element vertex 1000000000000"))
+    add("ply_le", "count_2pow64.ply", le.replace(b"element vertex 3", b"element vertex 18446744073709551616"))
+    add("ply_le", "count_negative.ply", le.replace(b"element vertex 3", b"element vertex -3"))
+    add("ply_le", "unknown_type.ply", le.replace(b"property float x", b"property float128 x"))
+    add("ply_le", "non_ascii_header.ply", le.replace(b"made by", b"made \xff\xfe by"))
+    add("ply_le", "no_end_header.ply", b"ply\nformat binary_little_endian 1.0\n" + b"comment x\n" * 7000)
+    add("ply_le", "list_property.ply", le.replace(b"property float x", b"property list uchar int x"))
+    add("ply_le", "format_2.ply", le.replace(b" 1.0\n", b" 2.0\n", 1))
+    add("ply_le", "bitflip_magic.ply", b"plz" + le[3:])
+    add("ply_ascii", "nan_token.ply", S["ply_ascii"].replace(b"128", b"nan"))
+    add("ply_ascii", "int_out_of_range.ply", S["ply_ascii"].replace(b"255", b"256"))
+    add("ply_ascii", "count_1e12.ply", S["ply_ascii"].replace(b"element vertex 3", b"element vertex 1000000000000"))
+    add("ply_be", "truncated.ply", S["ply_be"][:-1])
+
+    sc = S["scaffold_ply"]
+    add("scaffold_ply", "ok_seed.ply", sc)
+    add("scaffold_ply", "bug_huge_property_index.ply", sc.replace(b"f_offset_5\n", b"f_offset_99999999999\n"))
+    add("scaffold_ply", "truncated.ply", sc[: len(sc) // 2])
+    add("scaffold_ply", "count_1e12.ply", sc.replace(b"element vertex 3", b"element vertex 1000000000000"))
+    h = sc.index(b"end_header\n") + 11
+    nan_pos = bytearray(sc)
+    nan_pos[h:h + 4] = struct.pack("<f", float("nan"))  # x of the first anchor
+    add("scaffold_ply", "nan_position.ply", bytes(nan_pos))
+    inf_feat = bytearray(sc)
+    row = (len(sc) - h) // 3
+    inf_feat[h + row - 4 * 12:h + row - 4 * 11] = struct.pack("<f", float("inf"))  # a scaling of anchor 0
+    add("scaffold_ply", "inf_scaling.ply", bytes(inf_feat))
+    add("scaffold_ply", "inria_file.ply", S["inria_ply"])
+    add("scaffold_ply", "double_overflow.ply", _double_overflow(sc))
+
+    gi = S["inria_ply"]
+    add("inria_ply", "ok_seed.ply", gi)
+    add("inria_ply", "bug_huge_property_index.ply", gi.replace(b"f_rest_3\n", b"f_rest_123456789012\n"))
+    add("inria_ply", "truncated.ply", gi[:-7])
+    add("inria_ply", "wrong_rest_count.ply", gi.replace(b"property float f_rest_8\n", b""))
+    add("inria_ply", "scaffold_file.ply", sc)
+
+    # ---- COLMAP binary
+    cb, ib, pb = S["cameras_bin"], S["images_bin"], S["points3d_bin"]
+    add("cameras_bin", "ok_seed.bin", cb)
+    add("cameras_bin", "count_1e9.bin", struct.pack("<Q", 10**9) + cb[8:])
+    add("cameras_bin", "count_2pow64m1.bin", struct.pack("<Q", 2**64 - 1) + cb[8:])
+    add("cameras_bin", "unknown_model.bin", cb[:12] + struct.pack("<i", 99) + cb[16:])
+    add("cameras_bin", "huge_size.bin", cb[:16] + struct.pack("<Q", 2**63) + cb[24:])
+    add("cameras_bin", "truncated.bin", cb[:-3])
+    add("cameras_bin", "empty.bin", b"")
+    add("images_bin", "ok_seed.bin", ib)
+    add("images_bin", "count_1e9.bin", struct.pack("<Q", 10**9) + ib[8:])
+    add("images_bin", "keypoints_1e12.bin", ib.replace(struct.pack("<Q", 2) + struct.pack("<dd", 1.0, 2.0),
+                                                       struct.pack("<Q", 10**12) + struct.pack("<dd", 1.0, 2.0), 1))
+    add("images_bin", "unterminated_name.bin", ib.replace(b"a.png\0", b"a.png" + b"x" * 300, 1)[:400])
+    add("images_bin", "bug_newline_in_name_bad_pose.bin",
+        ib[:8] + struct.pack("<i4d3di", 10, 0.0, 0.0, 0.0, 0.0, 0, 0, 0, 1) + b"a\nb.png\0" + struct.pack("<Q", 0))
+    add("images_bin", "huge_quaternion.bin",
+        ib[:8] + struct.pack("<i4d3di", 10, 1e308, 1e308, 0.0, 0.0, 0, 0, 0, 1) + b"a.png\0" + struct.pack("<Q", 0))
+    add("points3d_bin", "ok_seed.bin", pb)
+    add("points3d_bin", "count_1e9.bin", struct.pack("<Q", 10**9) + pb[8:])
+    add("points3d_bin", "track_1e9.bin", struct.pack("<Q", 1) + struct.pack("<Q3d3BdQ", 1, 0, 0, 0, 1, 2, 3, 0.5, 10**9))
+    add("points3d_bin", "track_2pow64m1.bin",
+        struct.pack("<Q", 1) + struct.pack("<Q3d3BdQ", 1, 0, 0, 0, 1, 2, 3, 0.5, 2**64 - 1))
+    add("points3d_bin", "nan_xyz.bin", struct.pack("<Q", 1) + struct.pack("<Q3d3BdQ", 1, float("nan"), 0, 0, 1, 2, 3, 0.5, 0))
+    add("points3d_bin", "trailing.bin", pb + b"\0")
+
+    # ---- COLMAP text
+    add("cameras_txt", "ok_seed.txt", S["cameras_txt"])
+    add("cameras_txt", "huge_width.txt", b"1 PINHOLE 99999999999999999999999 12 1 1 1 1\n")
+    add("cameras_txt", "nan_param.txt", b"1 PINHOLE 16 12 nan 1 1 1\n")
+    add("cameras_txt", "not_utf8.txt", b"1 PINHOLE \xff\xfe 12 1 1 1 1\n")
+    add("cameras_txt", "few_params.txt", b"1 OPENCV 16 12 1 1 1 1\n")
+    add("images_txt", "ok_seed.txt", S["images_txt"])
+    add("images_txt", "no_keypoint_line.txt", b"10 1 0 0 0 0 0 0 1 a.png")
+    add("images_txt", "bad_pose.txt", b"10 0 0 0 0 0 0 0 1 a.png\n\n")
+    add("images_txt", "bug_nan_point3d_id.txt", b"10 1 0 0 0 0 0 0 1 a.png\n1.0 2.0 nan\n")
+    add("images_txt", "keypoints_not_triples.txt", b"10 1 0 0 0 0 0 0 1 a.png\n1.0 2.0\n")
+    add("points3d_txt", "ok_seed.txt", S["points3d_txt"])
+    add("points3d_txt", "bug_int_beyond_int64.txt", b"101 1 2 3 0 0 99999999999999999999999 0.0\n")
+    add("points3d_txt", "bug_id_beyond_int64.txt", b"99999999999999999999999 1 2 3 0 0 0 0.0\n")
+    add("points3d_txt", "odd_track.txt", b"101 1 2 3 0 0 0 0.0 5\n")
+    add("points3d_txt", "colour_300.txt", b"101 1 2 3 300 0 0 0.0\n")
+
+    # ---- Blender transforms
+    add("blender_json", "ok_seed.json", S["blender_json"])
+    add("blender_json", "bug_deep_nesting.json", b"[" * 5000 + b"]" * 5000)
+    add("blender_json", "bug_nul_in_file_path.json",
+        b'{"camera_angle_x": 0.5, "frames": [{"file_path": "r_0\\u0000x", "transform_matrix": []}]}')
+    add("blender_json", "int_5000_digits.json", b'{"camera_angle_x": 1' + b"0" * 5000 + b', "frames": []}')
+    add("blender_json", "angle_nan.json", b'{"camera_angle_x": NaN, "frames": []}')
+    add("blender_json", "singular_matrix.json", b'{"camera_angle_x": 0.5, "frames": [{"file_path": "r_0", '
+                                                b'"transform_matrix": [[0,0,0,0],[0,0,0,0],[0,0,0,0],[0,0,0,0]]}]}')
+    add("blender_json", "not_utf8.json", b'{"camera_angle_x": 0.5, "frames": "\xff"}')
+    add("blender_json", "list_toplevel.json", b"[]")
+    far = json.loads(S["blender_json"])
+    far["frames"][0]["transform_matrix"][2][3] = 1e308  # bounds overflow: the error message was multi-line
+    add("blender_json", "bug_camera_at_1e308_multiline_message.json", json.dumps(far).encode())
+
+    # ---- containers
+    c = S["container"]
+    add("container", "ok_seed.pxc", c)
+    add("container", "wrong_magic.pxc", b"\x89PXD" + c[4:])
+    add("container", "truncated_header.pxc", c[:20])
+    add("container", "truncated_payload.pxc", c[:-10])
+    add("container", "trailing_bytes.pxc", c + b"\0")
+    flipped = bytearray(c)
+    flipped[-3] ^= 0x10
+    add("container", "bitflip_payload.pxc", bytes(flipped))
+    add("container", "version_2.pxc", _reheader(c, version=2))
+    add("container", "sections_5000.pxc", _reheader(c, n=5000))
+    m, stored = F._meta_entry(b'{"k":1}', 0)
+    e = {"name": "big", "codec": 1, "dtype": 1, "shape": (1 << 30,), "offset": 0, "stored": 900, "raw": 1 << 30,
+         "crc": 0}
+    m["offset"] = 32 + F._toc_size([m, e])
+    e["offset"] = m["offset"] + len(stored)
+    add("container", "section_1GiB_declared.pxc", F.forge_container([m, e], stored + b"\x28\xb5\x2f\xfd" + bytes(896)))
+    e2 = dict(e, shape=(2**32, 2**32), raw=0, stored=0, codec=0)
+    add("container", "shape_overflow.pxc", F.forge_container([m, e2], stored))
+    m2, stored2 = F._meta_entry(b"[1, 2]", 0)
+    m2["offset"] = 32 + F._toc_size([m2])
+    add("container", "meta_not_object.pxc", F.forge_container([m2], stored2))
+    m3, stored3 = F._meta_entry(b'{"a": NaN}', 0)
+    m3["offset"] = 32 + F._toc_size([m3])
+    add("container", "meta_nan.pxc", F.forge_container([m3], stored3))
+    add("container_header", "wrong_magic.pxc", b"\x89PXD" + c[4:])
+    add("container_header", "toc_crc.pxc", c[:40] + bytes([c[40] ^ 1]) + c[41:])
+
+    for reader, items in files.items():
+        d = HERE / reader
+        if d.exists():
+            shutil.rmtree(d)
+        if not items:
+            continue
+        d.mkdir()
+        for name, data in items.items():
+            (d / name).write_bytes(data)
+    total = sum(p.stat().st_size for p in HERE.glob("*/*"))
+    print(f"{sum(len(v) for v in files.values())} files, {total} bytes")
+
+
+def _reheader(c: bytes, *, version: int | None = None, n: int | None = None) -> bytes:
+    magic, v, flags, nn, toc_len, toc_crc, _ = container.HEADER.unpack(c[:32])
+    head = container.HEADER.pack(magic, v if version is None else version, flags, nn if n is None else n, toc_len,
+                                 toc_crc, 0)
+    return head[:-4] + struct.pack("<I", zlib.crc32(head[:-4])) + c[32:]
+
+
+def _double_overflow(sc: bytes) -> bytes:
+    """x as a double property holding 1e300 (beyond float32)."""
+    h = sc.index(b"end_header\n") + 11
+    head = sc[:h].replace(b"property float x\n", b"property double x\n")
+    n = 3
+    row = (len(sc) - h) // n
+    out = bytearray(head)
+    for i in range(n):
+        r = sc[h + i * row:h + (i + 1) * row]
+        out += struct.pack("<d", 1e300) + r[4:]
+    return bytes(out)
+
+
+if __name__ == "__main__":
+    main()
