@@ -219,7 +219,7 @@ def read_header(path: str | os.PathLike) -> tuple[int, int, list[SectionInfo], i
     return version, flags, sections, file_size
 
 
-def _decompress(stored: bytes, raw_size: int, err) -> bytes:
+def _decompress(stored: bytes, raw_size: int, err) -> bytearray:
     """Chunked decompression that never produces (or allocates for) more than ``raw_size`` bytes."""
     dctx = zstandard.ZstdDecompressor()
     try:
@@ -241,7 +241,7 @@ def _decompress(stored: bytes, raw_size: int, err) -> bytes:
         raise err("compressed stream is truncated or has trailing data")
     if len(out) != raw_size:
         raise err(f"compressed stream holds {len(out)} bytes, expected {raw_size}")
-    return bytes(out)
+    return out  # no bytes() copy: peak memory stays at one raw-size buffer
 
 
 def read_container(path: str | os.PathLike, *, sections: set[str] | None = None) -> Container:
@@ -271,8 +271,8 @@ def read_container(path: str | os.PathLike, *, sections: set[str] | None = None)
                     raise err("metadata section must be 1-D bytes")
                 try:
                     meta = json.loads(raw.decode("utf-8"), parse_constant=lambda c: (_ for _ in ()).throw(ValueError(c)))
-                except (UnicodeDecodeError, ValueError) as e:
-                    raise err(f"metadata is not valid JSON ({e})") from None
+                except (UnicodeDecodeError, ValueError, RecursionError) as e:
+                    raise err(f"metadata is not valid JSON ({type(e).__name__})") from None
                 if not isinstance(meta, dict):
                     raise err("metadata must be a JSON object")
             else:

@@ -632,23 +632,33 @@ def _container_stats(path: Path) -> dict:
                            "header_and_toc_bytes": infos[0].offset if infos else size,
                            "sections": sections}
     if meta.get("kind") == SCENE_KIND:
-        a = meta.get("anchors", {})
-        M = int(a.get("count", 0) or 0)
-        src = (meta.get("source") or {}).get("bytes")
-        groups: dict[str, int] = {}
-        for s in infos:
-            g = s.name.split("/")[0] if "/" in s.name else s.name
-            groups[g] = groups.get(g, 0) + s.stored_size
-        out.update({
-            "scene_format": meta.get("scene_format"), "anchors": M, "proxies": a.get("proxies"),
-            "leaves": a.get("leaves"), "bits_per_anchor": 8.0 * size / M if M else None,
-            "source_bytes": src, "ratio": (src / size) if src else None, "bytes_by_group": groups,
-            "positions": meta.get("positions", {}).get("mode"), "offsets": meta.get("offsets"),
-            "proxy": meta.get("proxy"), "quant_bits": {k: v.get("bits") for k, v in meta.get("quant", {}).items()},
-            "weights_dtype": meta.get("weights_dtype"),
-        })
+        try:
+            out.update(_scene_stats(meta, infos, size))
+        except (AttributeError, TypeError, ValueError, OverflowError) as e:
+            raise ContainerError(f"malformed scene metadata ({type(e).__name__}: {e})", path) from None
     out["metadata"] = meta
     return out
+
+
+def _scene_stats(meta: dict, infos, size: int) -> dict:
+    """Derived figures of a scene container; raises on metadata of the wrong type (caller turns it into ours)."""
+    a = meta.get("anchors", {})
+    M = int(a.get("count", 0) or 0)
+    src = (meta.get("source") or {}).get("bytes")
+    groups: dict[str, int] = {}
+    for s in infos:
+        g = s.name.split("/")[0] if "/" in s.name else s.name
+        groups[g] = groups.get(g, 0) + s.stored_size
+    if src is not None and not (isinstance(src, (int, float)) and src >= 0):
+        raise ValueError("source.bytes must be a non-negative number")
+    return {
+        "scene_format": meta.get("scene_format"), "anchors": M, "proxies": a.get("proxies"),
+        "leaves": a.get("leaves"), "bits_per_anchor": 8.0 * size / M if M else None,
+        "source_bytes": src, "ratio": (src / size) if src else None, "bytes_by_group": groups,
+        "positions": meta.get("positions", {}).get("mode"), "offsets": meta.get("offsets"),
+        "proxy": meta.get("proxy"), "quant_bits": {k: v.get("bits") for k, v in meta.get("quant", {}).items()},
+        "weights_dtype": meta.get("weights_dtype"),
+    }
 
 
 def _ply_stats(path: Path) -> dict:

@@ -156,7 +156,7 @@ class PredictorConfig:
         for k in ("n_blocks", "pe_dist_freqs", "pe_dir_freqs"):
             if not 0 <= int(getattr(self, k)) <= 64:
                 raise ProxycodecError(f"predictor {k} = {getattr(self, k)} is out of range")
-        if not (math.isfinite(self.dist_ref) and self.dist_ref > 0):
+        if not (math.isfinite(self.dist_ref) and 1e-30 < self.dist_ref < 1e30):  # float32-representable
             raise ProxycodecError(f"predictor dist_ref must be positive, got {self.dist_ref}")
 
     @property

@@ -310,3 +310,22 @@ class TestCli:
             assert r.exit_code == 2, (args, r.output)
             assert "Traceback" not in r.output and r.output.strip().count("\n") == 0, r.output
             assert r.output.startswith("error: ")
+
+
+def test_wrongly_typed_metadata_is_our_error(tmp_path):
+    """stats/decode of a container whose CRCs are valid but whose metadata has the wrong types."""
+    from proxycodec import codec
+    from proxycodec.formats.container import ContainerError, read_container, write_container
+
+    src = tmp_path / "s.pxc"
+    codec.encode(tiny_model(60), src, predictor_iters=5)
+    c = read_container(src)
+    for patch in ({"source": 5}, {"source": {"bytes": "many"}}, {"anchors": []}):
+        q = tmp_path / "q.pxc"
+        write_container(q, {**c.meta, **patch}, c.arrays)
+        with pytest.raises(ContainerError):
+            codec.stats(q)
+    meta = {**c.meta, "predictor": {**c.meta["predictor"], "dist_ref": 1e308}}
+    write_container(tmp_path / "d.pxc", meta, c.arrays)
+    with pytest.raises(ContainerError, match="dist_ref"):
+        codec.decode(tmp_path / "d.pxc")

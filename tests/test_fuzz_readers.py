@@ -404,8 +404,6 @@ def test_forged_metadata(meta, codec, workdir):
     _assert_clean("container", forge_container([m], stored), workdir)
 
 
-@pytest.mark.xfail(strict=False, reason="container.py (codec engineer's) lets RecursionError escape from "
-                   "json.loads on deeply nested metadata; reported, not fixed here")
 def test_deeply_nested_metadata(workdir):
     meta = b"[" * 100_000 + b"]" * 100_000
     m, stored = _meta_entry(meta, 0, container.CODEC_ZSTD)
