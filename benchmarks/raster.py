@@ -3,7 +3,11 @@
 Each case runs in its own subprocess, so that its peak RSS (getrusage maxrss) is its own and the reference's memory
 does not pollute the cpu figures. Timings are wall-clock medians (and minima) over repeats, after one warm-up render;
 the four phases are timed separately: projection forward, raster forward, raster backward (to the 2D interface),
-projection backward (autograd through project.py). ``total`` is their sum for one repeat.
+projection backward. ``total`` is their sum for one repeat. The projection runs on the path ``render.project`` picks
+for the backend (the fused numba projection, ``render/project_cpu.py``, for ``cpu``; the torch reference,
+``render/project.py``, otherwise), reported as ``project_backend``; a case with ``"project": "torch"`` forces the torch
+projection (for the comparison). CPU times (``time.process_time``, all threads of the process) are recorded beside
+the wall-clock ones, since the machine is shared.
 
     python benchmarks/raster.py                 # full grid, writes benchmarks/results/raster.json
     python benchmarks/raster.py --quick         # 400 px, 100k, xi 1.0 / 0.1, and the reference comparison
@@ -60,9 +64,11 @@ def run_case(case: dict) -> dict:
     import torch
 
     torch.set_num_threads(2)
-    from proxycodec.render import project_gaussians, rasterize
+    from proxycodec.render import project, project_gaussians, rasterize, resolve_backend
 
     backend, n, size, xi, repeats = case["backend"], case["n"], case["size"], case["xi"], case["repeats"]
+    force_torch = case.get("project") == "torch"
+    fused = not force_torch and resolve_backend(backend, torch.device("cpu")) == "cpu"
     cam = make_camera(size, xi)
     params = [p.requires_grad_(True) for p in make_scene(n, case["seed"])]
     bg = torch.tensor(BACKGROUND)
@@ -71,8 +77,9 @@ def run_case(case: dict) -> dict:
     def once():
         for p in params:
             p.grad = None
+        c0 = time.process_time()
         t0 = time.perf_counter()
-        proj = project_gaussians(*params, cam)
+        proj = project_gaussians(*params, cam) if force_torch else project(*params, cam, backend=backend)
         t1 = time.perf_counter()
         leaves = [x.detach().requires_grad_(True) for x in (proj.means2d, proj.conics, proj.opacities, proj.colors)]
         proj2 = type(proj)(leaves[0], leaves[1], leaves[2], leaves[3], proj.depths, proj.extent, proj.index,
@@ -84,7 +91,7 @@ def run_case(case: dict) -> dict:
         t3 = time.perf_counter()
         torch.autograd.backward([proj.means2d, proj.conics, proj.opacities, proj.colors], [x.grad for x in leaves])
         t4 = time.perf_counter()
-        return proj, (t1 - t0, t2 - t1, t3 - t2, t4 - t3, t4 - t0)
+        return proj, (t1 - t0, t2 - t1, t3 - t2, t4 - t3, t4 - t0, time.process_time() - c0)
 
     load_before = os.getloadavg()
     t_first = time.perf_counter()
@@ -96,6 +103,8 @@ def run_case(case: dict) -> dict:
     names = ("proj_fwd_ms", "raster_fwd_ms", "raster_bwd_ms", "proj_bwd_ms", "total_ms")
     out = dict(case)
     out.update({
+        "project_backend": "cpu-fused" if fused else "torch",
+        "cpu_time_total_ms": {"median": float(np.median(arr[:, 5])), "min": float(arr[:, 5].min())},
         "width": cam.width, "height": cam.height, "visible": proj.count, "culled": n - proj.count,
         "median": {k: float(np.median(arr[:, i])) for i, k in enumerate(names)},
         "min": {k: float(arr[:, i].min()) for i, k in enumerate(names)},
@@ -140,15 +149,17 @@ def fmt(r: dict) -> str:
     if "error" in r:
         return f"{r['backend']:9s} {r['n']:>7d} {r['size']:>4d} {r['xi']:>4.2f}  ERROR {r['error']}"
     m, mn = r["median"], r["min"]
-    return (f"{r['backend']:9s} {r['n']:>7d} {r['size']:>4d} {r['xi']:>4.2f} {r['width']:>4d}x{r['height']:<4d}"
+    return (f"{r['backend']:9s} {r['project_backend']:9s} {r['n']:>7d} {r['size']:>4d} {r['xi']:>4.2f}"
+            f" {r['width']:>4d}x{r['height']:<4d}"
             f"{r['visible']:>8d} {r['culled']:>7d} {m['proj_fwd_ms']:8.1f} {m['raster_fwd_ms']:8.1f}"
             f" {m['raster_bwd_ms']:8.1f} {m['proj_bwd_ms']:8.1f} {m['total_ms']:8.1f} {mn['total_ms']:8.1f}"
-            f" {r['peak_rss_mb']:7.0f}  {r['loadavg_before'][0]:4.2f}/{r['loadavg_after'][0]:4.2f}")
+            f" {r['cpu_time_total_ms']['median']:8.1f} {r['peak_rss_mb']:7.0f}"
+            f"  {r['loadavg_before'][0]:4.2f}/{r['loadavg_after'][0]:4.2f}")
 
 
-HEADER = (f"{'backend':9s} {'N':>7s} {'size':>4s} {'xi':>4s} {'W x H':^9s}{'visible':>8s} {'culled':>7s}"
-          f" {'projF':>8s} {'rastF':>8s} {'rastB':>8s} {'projB':>8s} {'total':>8s} {'tot.min':>8s} {'RSS MB':>7s}"
-          f"  load1 before/after")
+HEADER = (f"{'backend':9s} {'project':9s} {'N':>7s} {'size':>4s} {'xi':>4s} {'W x H':^9s}{'visible':>8s}"
+          f" {'culled':>7s} {'projF':>8s} {'rastF':>8s} {'rastB':>8s} {'projB':>8s} {'total':>8s} {'tot.min':>8s} {'cpu.tot':>8s}"
+          f" {'RSS MB':>7s}  load1 before/after")
 
 
 def main(argv=None) -> int:
@@ -173,6 +184,8 @@ def main(argv=None) -> int:
     # this memory. It runs on the cases below, with the cpu backend timed on the same cases in the same run.
     ref_grid = [(100_000, 400, 0.1), (20_000, 200, 1.0)]
     cases = [{"backend": "cpu", "n": n, "size": s, "xi": xi} for n, s, xi in grid]
+    # the same raster with the torch projection: what the fused projection buys
+    cases.append({"backend": "cpu", "n": 100_000, "size": 400, "xi": 1.0, "project": "torch"})
     for n, s, xi in ref_grid:
         if not any(c["n"] == n and c["size"] == s and c["xi"] == xi for c in cases):
             cases.append({"backend": "cpu", "n": n, "size": s, "xi": xi})
@@ -196,17 +209,26 @@ def main(argv=None) -> int:
 
     summary = {}
     for n, s, xi in ref_grid:
-        pair = [r for r in results if r["n"] == n and r["size"] == s and r["xi"] == xi and "error" not in r]
+        pair = [r for r in results if r["n"] == n and r["size"] == s and r["xi"] == xi and "error" not in r
+                and "project" not in r]
         by = {r["backend"]: r for r in pair}
         if "cpu" in by and "reference" in by:
             summary[f"speedup_vs_reference_{n}_{s}px_xi{xi}"] = (by["reference"]["median"]["total_ms"]
                                                                   / by["cpu"]["median"]["total_ms"])
     for n in (100_000, 300_000):
         for s in (200, 400, 800):
-            full = [r for r in results if r["backend"] == "cpu" and r["n"] == n and r["size"] == s and "error" not in r]
+            full = [r for r in results if r["backend"] == "cpu" and r["n"] == n and r["size"] == s and "error" not in r
+                    and "project" not in r]
             by = {r["xi"]: r for r in full}
             if 1.0 in by and 0.1 in by:
                 summary[f"xi0.1_over_xi1.0_{n}_{s}px"] = by[0.1]["median"]["total_ms"] / by[1.0]["median"]["total_ms"]
+    fused = [r for r in results if r["backend"] == "cpu" and (r["n"], r["size"], r["xi"]) == (100_000, 400, 1.0)
+             and "error" not in r]
+    by = {r.get("project", "auto"): r for r in fused}
+    if "torch" in by and "auto" in by:
+        for phase in ("proj_fwd_ms", "proj_bwd_ms", "total_ms"):
+            summary[f"torch_over_fused_projection_{phase}_100000_400px"] = (by["torch"]["median"][phase]
+                                                                            / by["auto"]["median"][phase])
     print("summary:", json.dumps(summary, indent=1))
     print(f"load average at end {meta['loadavg_end']}")
     out = Path(args.out)

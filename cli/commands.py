@@ -63,3 +63,4 @@ def demo(out_dir: str, res: str, backend: str, predictor_iters: int) -> None:
 
 
 from . import codec  # noqa
+from . import fit  # noqa

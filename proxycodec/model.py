@@ -8,7 +8,8 @@ renders it with nothing else. Nothing is ever unpickled.
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
+import zlib
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -17,7 +18,7 @@ import torch
 from .camera import Camera, check_xi
 from .decoder import DecoderConfig, GaussianDecoder, NeuralGaussians, visible_anchors
 from .errors import ProxycodecError
-from .render import GateConfig, RenderResult, project_gaussians, rasterize
+from .render import GateConfig, RenderResult, project, rasterize
 from .scene import AnchorScene
 
 WEIGHTS_KIND = "proxycodec.weights"
@@ -66,8 +67,8 @@ def render_scene(
     cam = camera.scaled(xi)
     g, vis = decode_view(scene, decoder, cam, xi, features)
     bg = torch.as_tensor(background, dtype=scene.positions.dtype, device=scene.positions.device)
-    proj = project_gaussians(g.means, g.quats, g.scales, g.opacities, g.colors, cam,
-                             gate=decoder.config.gate if gate is None else gate, origin=g.origin)
+    proj = project(g.means, g.quats, g.scales, g.opacities, g.colors, cam,
+                   gate=decoder.config.gate if gate is None else gate, origin=g.origin, backend=backend)
     image, alpha = rasterize(proj, bg, backend)
     return SceneRender(image=image, alpha=alpha, projected=proj, gaussians=g, visible_anchor_index=vis)
 
@@ -80,32 +81,57 @@ class SceneModel:
     decoder: GaussianDecoder
     cameras: list[Camera] | None = None
     background: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    meta: dict = field(default_factory=dict)  # the weights sidecar's metadata when loaded from files
 
     def render(self, camera: Camera, xi: float = 1.0, *, backend: str = "auto") -> SceneRender:
         with torch.no_grad():
             return render_scene(self.scene, self.decoder, camera, xi, background=self.background, backend=backend)
 
     # ------------------------------------------------------------------ persistence
-    def save(self, ply_path: str | os.PathLike, extra_meta: dict | None = None) -> tuple[Path, Path]:
+    def save(self, ply_path: str | os.PathLike, extra_meta: dict | None = None,
+             extra_arrays: dict[str, np.ndarray] | None = None) -> tuple[Path, Path]:
+        """Write the anchor PLY and its weights sidecar as a pair.
+
+        Both are written to temporary files first and renamed only when both are complete (weights first), so an
+        interrupt never leaves a PLY without weights. The sidecar records the PLY's size and CRC32; ``load`` refuses
+        a pair that does not belong together (e.g. a PLY replaced by another tool).
+        """
         from .formats.container import write_container
         from .formats.scaffold_ply import ScaffoldPly, write_scaffold_ply
 
         s = self.scene
-        write_scaffold_ply(ply_path, ScaffoldPly(
-            positions=s.positions.detach().cpu().numpy(), offsets=s.offsets.detach().cpu().numpy(),
-            features=s.features.detach().cpu().numpy(), scalings=s.scalings.detach().cpu().numpy()))
-        meta = {
-            "kind": WEIGHTS_KIND,
-            "decoder": self.decoder.config.to_json(),
-            "voxel_size": s.voxel_size,
-            "background": list(self.background),
-            "cameras": [c.to_json() for c in self.cameras] if self.cameras else [],
-            "scene": {k: v for k, v in s.metadata.items()},
-            **(extra_meta or {}),
-        }
+        ply_path = Path(ply_path)
         wpath = weights_path_for(ply_path)
-        write_container(wpath, meta, self.decoder.state_arrays())
-        return Path(ply_path), wpath
+        tmp_ply = ply_path.with_name(f".{ply_path.name}.{os.getpid()}.pair.tmp")
+        tmp_w = wpath.with_name(f".{wpath.name}.{os.getpid()}.pair.tmp")
+        try:
+            write_scaffold_ply(tmp_ply, ScaffoldPly(
+                positions=s.positions.detach().cpu().numpy(), offsets=s.offsets.detach().cpu().numpy(),
+                features=s.features.detach().cpu().numpy(), scalings=s.scalings.detach().cpu().numpy()))
+            ply_bytes = tmp_ply.read_bytes()
+            meta = {
+                "kind": WEIGHTS_KIND,
+                "decoder": self.decoder.config.to_json(),
+                "voxel_size": s.voxel_size,
+                "background": list(self.background),
+                "cameras": [c.to_json() for c in self.cameras] if self.cameras else [],
+                "scene": {k: v for k, v in s.metadata.items()},
+                "anchor_ply": {"bytes": len(ply_bytes), "crc32": zlib.crc32(ply_bytes)},
+                **(extra_meta or {}),
+            }
+            arrays = self.decoder.state_arrays()
+            for k, v in (extra_arrays or {}).items():
+                if k in arrays:
+                    raise ProxycodecError(f"weights section {k!r} collides with a decoder weight")
+                arrays[k] = v
+            write_container(tmp_w, meta, arrays)
+            os.replace(tmp_w, wpath)
+            os.replace(tmp_ply, ply_path)
+        except BaseException:
+            for t in (tmp_ply, tmp_w):
+                t.unlink(missing_ok=True)
+            raise
+        return ply_path, wpath
 
     @staticmethod
     def load(ply_path: str | os.PathLike, weights_path: str | os.PathLike | None = None) -> "SceneModel":
@@ -122,6 +148,12 @@ class SceneModel:
         c = read_container(wpath)
         if c.meta.get("kind") != WEIGHTS_KIND:
             raise ProxycodecError(f"not a weights file (kind {c.meta.get('kind')!r})", wpath)
+        pair = c.meta.get("anchor_ply")
+        if isinstance(pair, dict) and "crc32" in pair:
+            data = ply_path.read_bytes()
+            if len(data) != pair.get("bytes") or zlib.crc32(data) != pair.get("crc32"):
+                raise ProxycodecError(f"weights file {wpath.name} was written for a different anchor PLY "
+                                      "(size/CRC32 mismatch)", ply_path)
         try:
             cfg = DecoderConfig.from_json(c.meta["decoder"])
             decoder = GaussianDecoder.from_arrays(cfg, c.arrays)
@@ -137,7 +169,7 @@ class SceneModel:
         scene = AnchorScene(scene.positions, scene.features, scene.offsets, scene.scalings, voxel,
                             dict(c.meta.get("scene", {})))
         decoder.eval()
-        return SceneModel(scene, decoder, cams or None, bg)  # type: ignore[arg-type]
+        return SceneModel(scene, decoder, cams or None, bg, dict(c.meta))  # type: ignore[arg-type]
 
 
 def image_to_uint8(image: torch.Tensor) -> np.ndarray:

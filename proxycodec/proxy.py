@@ -268,7 +268,7 @@ class ResidualPredictor(nn.Module):
                 raise ProxycodecError(f"predictor weight {k} has shape {a.shape}, expected {tuple(ref.shape)}")
             if not np.all(np.isfinite(a)):
                 raise ProxycodecError(f"predictor weight {k} contains NaN or Inf")
-            state[k] = torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32))
+            state[k] = torch.from_numpy(np.array(a, dtype=np.float32, copy=True))
         pred.load_state_dict(state)
         return pred
 

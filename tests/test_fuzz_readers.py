@@ -640,9 +640,7 @@ def test_sigint_during_a_large_ply_write_leaves_nothing(tmp_path):
 
 
 @pytest.mark.parametrize("which_fsync", [
-    1, pytest.param(2, marks=pytest.mark.xfail(strict=False, reason=(
-        "SceneModel.save (proxycodec/model.py, not owned here) writes the PLY, then the weights: an interrupt in "
-        "between leaves a PLY without (or with stale) weights; reported")))], ids=["during_ply", "during_weights"])
+    1, 2], ids=["during_ply", "during_weights"])
 def test_sigint_during_cli_sample_leaves_no_partial_output(tmp_path, which_fsync):
     r = _interrupt(["cli", str(which_fsync), "sample", str(tmp_path / "s.ply")], tmp_path)
     assert r.returncode == 130, r.stderr

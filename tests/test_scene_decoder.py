@@ -126,3 +126,12 @@ def test_missing_weights_sidecar_is_a_clear_error(tmp_path):
     w.unlink()
     with pytest.raises(ProxycodecError, match="weights"):
         SceneModel.load(ply)
+
+
+def test_a_ply_and_weights_that_do_not_belong_together_are_refused(tmp_path):
+    a_ply, _ = SceneModel(tiny_scene(6, seed=1), tiny_decoder()).save(tmp_path / "a.ply")
+    b_ply, _ = SceneModel(tiny_scene(6, seed=2), tiny_decoder()).save(tmp_path / "b.ply")
+    b_ply.replace(a_ply)  # same anchor count and shapes, other anchors: a silent mismatch without the check
+    with pytest.raises(ProxycodecError, match="different anchor PLY"):
+        SceneModel.load(a_ply)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.ply", "a.weights.pxc", "b.weights.pxc"]

@@ -73,6 +73,33 @@ def rasterize(proj: Projected, background: torch.Tensor, backend: str = "auto") 
     return rasterize_reference(*args)
 
 
+def project(
+    means: torch.Tensor,
+    quats: torch.Tensor,
+    scales: torch.Tensor,
+    opacities: torch.Tensor,
+    colors: torch.Tensor,
+    camera,
+    *,
+    gate: GateConfig = GateConfig(),
+    near: float = 0.01,
+    far: float = 1e10,
+    origin=None,
+    backend: str = "auto",
+) -> Projected:
+    """``project_gaussians`` on the path the backend implies: the fused numba projection (``project_cpu``, same
+    result, analytic backward) when ``backend`` resolves to ``cpu`` and the tensors are on the CPU, else the torch
+    reference."""
+    name = resolve_backend(backend, means.device)
+    if name == "cpu" and means.device.type == "cpu":
+        from .project_cpu import project_gaussians_cpu
+
+        return project_gaussians_cpu(means, quats, scales, opacities, colors, camera, gate=gate, near=near, far=far,
+                                     origin=origin)
+    return project_gaussians(means, quats, scales, opacities, colors, camera, gate=gate, near=near, far=far,
+                             origin=origin)
+
+
 def render_gaussians(
     means: torch.Tensor,
     quats: torch.Tensor,
@@ -88,10 +115,10 @@ def render_gaussians(
 ) -> RenderResult:
     """Render explicit 3D Gaussians seen by ``camera`` (at the camera's own resolution)."""
     bg = torch.as_tensor(background, dtype=means.dtype, device=means.device)
-    proj = project_gaussians(means, quats, scales, opacities, colors, camera, gate=gate, near=near)
+    proj = project(means, quats, scales, opacities, colors, camera, gate=gate, near=near, backend=backend)
     image, alpha = rasterize(proj, bg, backend)
     return RenderResult(image, alpha, proj)
 
 
-__all__ = ["GateConfig", "Projected", "RenderResult", "project_gaussians", "rasterize", "rasterize_reference",
-           "render_gaussians", "available_backends", "resolve_backend", "BACKENDS"]
+__all__ = ["GateConfig", "Projected", "RenderResult", "project", "project_gaussians", "rasterize",
+           "rasterize_reference", "render_gaussians", "available_backends", "resolve_backend", "BACKENDS"]

@@ -525,14 +525,19 @@ _SMALL_WORK = 16_384
 
 @contextlib.contextmanager
 def _pool(work: int):
-    """Thread count for the next kernels (numba's setting is thread-local) and dynamic scheduling over tiles."""
+    """Thread count for the next kernels (numba's setting is thread-local)."""
     prev = numba.get_num_threads()
     numba.set_num_threads(1 if work < _SMALL_WORK else prev)
     try:
-        with numba.parallel_chunksize(1):
-            yield
+        yield
     finally:
         numba.set_num_threads(prev)
+
+
+def _per_tile():
+    """Dynamic scheduling, one tile at a time: tiles differ wildly in cost. Per-Gaussian loops (binning, the
+    gradient reduction) keep numba's default static chunks: handing out 100k tasks one by one cost 280 ms."""
+    return numba.parallel_chunksize(1)
 
 
 def _n_chunks() -> int:
@@ -616,8 +621,9 @@ class _RasterizeCPU(torch.autograd.Function):
             alpha = np.empty((height, width), np_dt)
             t_fin = np.empty((height, width), np.float64)
             nc = np.empty((height, width), np.int32)
-            _forward(b.tile_off, b.tile_order, b.isect_g, b.geo, b.mxy, b.con, b.op, b.col, b.pcx, b.pcy, b.k_dt,
-                     _stop_threshold(np_dt), bg64, width, height, b.tiles_x, img, alpha, t_fin, nc)
+            with _per_tile():
+                _forward(b.tile_off, b.tile_order, b.isect_g, b.geo, b.mxy, b.con, b.op, b.col, b.pcx, b.pcy,
+                         b.k_dt, _stop_threshold(np_dt), bg64, width, height, b.tiles_x, img, alpha, t_fin, nc)
         ctx.binned, ctx.t_fin, ctx.nc = b, t_fin, nc
         return torch.from_numpy(img), torch.from_numpy(alpha)
 
@@ -643,8 +649,9 @@ class _RasterizeCPU(torch.autograd.Function):
         gbuf = np.zeros((b.n_isect, _NG + nch), np.float64)
         out = np.empty((n, _NG + nch), b.mxy.dtype)
         with _pool(n + width * height):
-            _backward(b.tile_off, b.tile_order, b.isect_g, b.tm_gm, b.geo, b.mxy, b.con, b.op, b.col, b.pcx, b.pcy,
-                      b.k_dt, ctx.bg64, width, height, b.tiles_x, ctx.t_fin, ctx.nc, g_img, g_alpha, gbuf)
+            with _per_tile():
+                _backward(b.tile_off, b.tile_order, b.isect_g, b.tm_gm, b.geo, b.mxy, b.con, b.op, b.col, b.pcx,
+                          b.pcy, b.k_dt, ctx.bg64, width, height, b.tiles_x, ctx.t_fin, ctx.nc, g_img, g_alpha, gbuf)
             _reduce(b.goff, b.order, gbuf, out)
         grads = torch.from_numpy(out)
         return (grads[:, 0:2], grads[:, 2:5], grads[:, 5], grads[:, _NG:], None, None, None, None, g_bg)

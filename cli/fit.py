@@ -1,0 +1,108 @@
+"""``proxycodec fit`` and ``proxycodec eval``: train a scene from posed images, evaluate it across resolutions."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import click
+
+from .main import cli, user_errors
+
+
+def _load_data(dataset: str, max_width: int | None, images: str, test_every: int):
+    from ..formats.datasets import dataset_kind, load_blender, load_colmap
+
+    if dataset_kind(dataset) == "blender":
+        return load_blender(dataset, max_width=max_width)
+    return load_colmap(dataset, images=images, max_width=max_width, test_every=test_every)
+
+
+@cli.command()
+@click.argument("dataset", type=click.Path(file_okay=False))
+@click.option("-o", "--out", default="scene.ply", show_default=True, type=click.Path(dir_okay=False),
+              help="Anchor PLY to write (weights go beside it as OUT.weights.pxc).")
+@click.option("--iters", type=int, default=None, help="Training iterations [default: 3000 without --time-budget].")
+@click.option("--time-budget", type=float, default=None, help="Seconds of training; schedules follow elapsed time.")
+@click.option("--max-width", type=int, default=1600, show_default=True,
+              help="100% reference width (3DGS rule: wider images are downscaled to it).")
+@click.option("--seed", type=int, default=0, show_default=True)
+@click.option("--no-gate", is_flag=True, help="Ablation: no pixel coverage gate.")
+@click.option("--embedding", type=click.Choice(["film", "additive", "none"]), default="film", show_default=True,
+              help="Resolution embedding of the anchor features.")
+@click.option("--fixed-res", is_flag=True, help="Ablation: train at 100% only (no random resolution).")
+@click.option("--no-proxies", is_flag=True, help="Ablation: Scaffold-GS only (no proxy anchors / predictor).")
+@click.option("--voxel-size", type=float, default=0.0, show_default=True,
+              help="Anchor voxel size; <= 0: scene extent / 128.")
+@click.option("--init-points", type=int, default=5_000, show_default=True,
+              help="Random initial points when the dataset has no SfM points (Blender).")
+@click.option("--images", default="images", show_default=True, help="COLMAP image folder.")
+@click.option("--test-every", type=int, default=8, show_default=True, help="COLMAP: every N-th image is a test view.")
+@click.option("--resume", is_flag=True, help="Continue from OUT's checkpoint (OUT.ckpt.pxc).")
+@click.option("--checkpoint-every", type=float, default=300.0, show_default=True, help="Seconds between checkpoints.")
+@click.option("--keep-checkpoint", is_flag=True, help="Keep the checkpoint after a successful run.")
+@click.option("--backend", default="auto", show_default=True, type=click.Choice(["auto", "reference", "cpu", "cuda"]))
+@user_errors
+def fit(dataset, out, iters, time_budget, max_width, seed, no_gate, embedding, fixed_res, no_proxies, voxel_size,
+        init_points, images, test_every, resume, checkpoint_every, keep_checkpoint, backend) -> None:
+    """Train an anchor scene on DATASET (Blender or COLMAP folder, detected by its files) and write OUT."""
+    from ..train import FitConfig
+    from ..train import fit as run_fit
+
+    if iters is None and time_budget is None:
+        iters = 3000
+    cfg = FitConfig(iters=iters, time_budget=time_budget, seed=seed, max_width=max_width, gate=not no_gate,
+                    embedding=embedding, fixed_res=fixed_res, proxies=not no_proxies, voxel_size=voxel_size,
+                    init_points=init_points, checkpoint_every=checkpoint_every, backend=backend)
+    data = _load_data(dataset, max_width, images, test_every)
+    res = run_fit(data, out, cfg, dataset_root=str(Path(dataset).resolve()), resume=resume,
+                  keep_checkpoint=keep_checkpoint)
+    click.echo(f"wrote {out} ({res.model.scene.num_anchors} anchors, {res.iterations} iterations, "
+               f"{res.seconds:.0f} s)")
+
+
+@cli.command("eval")
+@click.argument("scene", type=click.Path(dir_okay=False))
+@click.argument("dataset", type=click.Path(file_okay=False))
+@click.option("-o", "--out", "out_dir", type=click.Path(file_okay=False), default=None,
+              help="Report folder [default: SCENE's name + '_eval'].")
+@click.option("--max-width", type=int, default=None, help="100% reference width [default: the one the scene was fit at].")
+@click.option("--res", "res", default=None, help="Comma-separated resolution ratios [default: 0.1..1.0 and "
+              "0.025,0.05,0.075,1.1..1.5].")
+@click.option("--views", "n_views", type=int, default=None, help="Evaluate only the first N test views.")
+@click.option("--images", default="images", show_default=True, help="COLMAP image folder.")
+@click.option("--test-every", type=int, default=8, show_default=True)
+@click.option("--backend", default="auto", show_default=True, type=click.Choice(["auto", "reference", "cpu", "cuda"]))
+@user_errors
+def eval_cmd(scene, dataset, out_dir, max_width, res, n_views, images, test_every, backend) -> None:
+    """Evaluate SCENE on DATASET's test views at many resolutions: PSNR/SSIM/time/Gaussians, JSON + markdown +
+    plot + side-by-side crops."""
+    from ..errors import ProxycodecError
+    from ..evaluate import EXTRA_RESOLUTIONS, MAIN_RESOLUTIONS, evaluate, report_markdown, write_report
+    from ..model import SceneModel
+    from .main import parse_resolutions
+
+    model = SceneModel.load(scene)
+    meta = model.meta
+    fit_meta = meta.get("fit", {}) if isinstance(meta.get("fit"), dict) else {}
+    if max_width is None:
+        max_width = (fit_meta.get("config") or {}).get("max_width")
+    data = _load_data(dataset, max_width, images, test_every)
+    resolutions = parse_resolutions(res) if res else list(MAIN_RESOLUTIONS + EXTRA_RESOLUTIONS)
+    views = list(data.test_indices)
+    if n_views is not None:
+        if n_views < 1:
+            raise ProxycodecError("--views must be >= 1")
+        views = views[:n_views]
+    crop_keys = {(views[0], xi): None for xi in (0.1, 0.25, 0.5, 1.0, 1.5) if xi in resolutions}
+    rep = evaluate(model, data, resolutions=resolutions, views=views, backend=backend, scene_name=Path(scene).stem,
+                   keep_images=crop_keys, log=lambda s: click.echo(s, err=True))
+    rep.summary["fit"] = {k: fit_meta.get(k) for k in ("iterations", "seconds", "stage")} if fit_meta else None
+    rep.summary["max_width"] = max_width
+    out = Path(out_dir) if out_dir else Path(scene).with_name(Path(scene).stem + "_eval")
+    paths = write_report(rep, out, crop_keys)
+    click.echo(report_markdown(rep))
+    click.echo("wrote " + ", ".join(str(p) for p in paths.values()))
+    json.dumps(rep.summary)  # summary must stay JSON-serialisable
+    sys.stdout.flush()

@@ -1,0 +1,307 @@
+"""Training (``proxycodec fit``), evaluation (``proxycodec eval``) and the metrics they use.
+
+A tiny Blender-format dataset is written once per module: part of the built-in sample scene (the box on its patch of
+floor) rendered from 8 + 2 orbit cameras at 32x32 px. Fits run a few dozen iterations with small schedules.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from proxycodec.camera import orbit_cameras
+from proxycodec.errors import ProxycodecError
+from proxycodec.metrics import dssim, mse_to_psnr, psnr, ssim, ssim_torch
+
+SIZE = 32
+
+
+# ------------------------------------------------------------------------------------------------ fixtures
+@pytest.fixture(scope="module")
+def tiny_dataset(tmp_path_factory) -> Path:
+    from proxycodec.model import SceneModel, image_to_uint8
+    from proxycodec.sample import sample_model
+
+    root = tmp_path_factory.mktemp("tiny_blender")
+    m = sample_model()
+    s = m.scene
+    lo, hi = torch.tensor([0.15, -0.85, -0.05]), torch.tensor([0.95, -0.05, 0.6])
+    sub = s.subset(((s.positions >= lo) & (s.positions <= hi)).all(1).nonzero().squeeze(1))
+    model = SceneModel(sub, m.decoder)
+    cams = orbit_cameras((0.55, -0.45, 0.2), 1.8, 10, elevation_deg=35.0, fov_x_deg=45.0, width=SIZE, height=SIZE)
+    fov = 2 * math.atan(0.5 * SIZE / cams[0].fx)
+    splits = {"train": [c for i, c in enumerate(cams) if i % 5 != 0], "test": [c for i, c in enumerate(cams) if i % 5 == 0]}
+    for split, cs in splits.items():
+        (root / split).mkdir()
+        frames = []
+        for k, cam in enumerate(cs):
+            img = model.render(cam, 1.0).image
+            Image.fromarray(image_to_uint8(img)).save(root / split / f"r_{k}.png")
+            c2w = np.linalg.inv(cam.world_to_camera)
+            c2w[:3, 1:3] *= -1.0  # OpenCV -> OpenGL/Blender axes
+            frames.append({"file_path": f"./{split}/r_{k}", "transform_matrix": c2w.tolist()})
+        (root / f"transforms_{split}.json").write_text(json.dumps({"camera_angle_x": fov, "frames": frames}))
+    return root
+
+
+@pytest.fixture(scope="module")
+def data(tiny_dataset):
+    from proxycodec.formats.datasets import load_dataset
+
+    return load_dataset(tiny_dataset)
+
+
+def small_config(**kw):
+    from proxycodec.train import FitConfig
+
+    base = {"iters": 30, "max_width": None, "init_points": 250, "update_interval": 10, "predictor_warmup": 10,
+            "predictor_hidden": 16, "predictor_blocks": 1, "checkpoint_every": 0, "log_every": 1e9, "seed": 3}
+    base.update(kw)
+    return FitConfig(**base)
+
+
+def _fit(data, out, cfg, **kw):
+    from proxycodec.train import fit
+
+    return fit(data, out, cfg, dataset_root="tiny", log=lambda s: None, **kw)
+
+
+# ------------------------------------------------------------------------------------------------ metrics
+class TestMetrics:
+    def test_psnr_of_known_mse(self):
+        a = np.zeros((8, 8, 3))
+        assert psnr(a, a + 0.1) == pytest.approx(20.0)
+        assert psnr(a, a + 0.01) == pytest.approx(40.0)
+        assert mse_to_psnr(1e-3) == pytest.approx(30.0)
+        assert psnr(a, a) == math.inf
+
+    def test_ssim_identical_is_one(self):
+        rng = np.random.default_rng(0)
+        a = rng.random((20, 24, 3))
+        assert ssim(a, a) == pytest.approx(1.0)
+        t = torch.from_numpy(a).float()
+        assert float(ssim_torch(t, t)) == pytest.approx(1.0, abs=1e-6)
+        assert float(dssim(t, t)) == pytest.approx(0.0, abs=1e-6)
+
+    def test_ssim_degrades_and_matches_skimage_order(self):
+        rng = np.random.default_rng(1)
+        a = rng.random((32, 32, 3))
+        b = np.clip(a + rng.normal(0, 0.05, a.shape), 0, 1)
+        c = np.clip(a + rng.normal(0, 0.2, a.shape), 0, 1)
+        assert 1 > ssim(a, b) > ssim(a, c) > 0
+        ta, tb, tc = (torch.from_numpy(x).float() for x in (a, b, c))
+        assert 1 > float(ssim_torch(ta, tb)) > float(ssim_torch(ta, tc))
+
+    def test_ssim_tiny_images(self):
+        a = np.zeros((5, 4, 3))
+        assert ssim(a, a) == pytest.approx(1.0)  # 3x3 window
+        assert ssim(np.zeros((2, 2, 3)), np.zeros((2, 2, 3))) is None
+
+    def test_ssim_torch_gradient(self):
+        a = torch.rand(16, 16, 3, requires_grad=True)
+        b = torch.rand(16, 16, 3)
+        dssim(a, b).backward()
+        assert torch.isfinite(a.grad).all() and a.grad.abs().sum() > 0
+
+
+# ------------------------------------------------------------------------------------------------ config
+class TestConfig:
+    def test_rejects_bad_values(self):
+        from proxycodec.train import FitConfig
+
+        with pytest.raises(ProxycodecError):
+            FitConfig(iters=None, time_budget=None)
+        with pytest.raises(ProxycodecError):
+            FitConfig(embedding="bogus")
+        with pytest.raises(ProxycodecError):
+            FitConfig(xi_min=0.5, xi_max=0.2)
+
+    def test_json_round_trip(self):
+        from proxycodec.train import FitConfig
+
+        c = FitConfig(iters=7, gate=False, lambda_recon=(0.2, 0.02))
+        assert FitConfig.from_json(json.loads(json.dumps(c.to_json()))) == c
+
+
+# ------------------------------------------------------------------------------------------------ training
+class TestFit:
+    def test_loss_decreases_and_psnr_increases(self, data):
+        from proxycodec.metrics import psnr as psnr_
+        from proxycodec.model import render_scene
+        from proxycodec.train import Trainer
+
+        torch.set_num_threads(2)
+        tr = Trainer(data, small_config(iters=40, proxies=False), "tiny")
+        i = data.train_indices[0]
+        gt = data.load_image(i, 1.0)
+
+        def view_psnr():
+            with torch.no_grad():
+                r = render_scene(tr.anchors.scene(), tr.decoder, data.cameras[i], 1.0, background=tr.bg)
+            return psnr_(r.image.clamp(0, 1), gt)
+
+        p0 = view_psnr()
+        losses = [tr.train_step()["loss"] for _ in range(40)]
+        p1 = view_psnr()
+        assert all(math.isfinite(x) for x in losses)
+        assert np.mean(losses[-8:]) < 0.8 * np.mean(losses[:8])
+        assert p1 > p0 + 1.0
+
+    def test_deterministic_for_a_seed(self, data):
+        from proxycodec.train import Trainer
+
+        runs = []
+        for _ in range(2):
+            tr = Trainer(data, small_config(iters=20), "tiny")
+            runs.append([tr.train_step()["loss"] for _ in range(6)])
+        assert runs[0] == runs[1]
+
+    def test_output_reloads_in_a_new_process(self, data, tmp_path):
+        from proxycodec.model import SceneModel, weights_path_for
+        from proxycodec.train import checkpoint_path_for, load_predictor
+
+        out = tmp_path / "scene.ply"
+        res = _fit(data, out, small_config(iters=24))
+        assert out.exists() and weights_path_for(out).exists()
+        assert not checkpoint_path_for(out).exists()  # removed after success
+        assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temporaries left
+        assert res.iterations == 24
+        # Stage 2 ran: the sidecar holds the predictor and the proxy mask, and leaf features ARE its predictions.
+        pred, mask = load_predictor(weights_path_for(out))
+        assert pred is not None and mask.dtype == bool and 0 < mask.sum() < len(mask)
+        m = SceneModel.load(out)
+        assert m.scene.num_anchors == len(mask)
+        from proxycodec.proxy import nearest_proxy
+
+        near = torch.from_numpy(nearest_proxy(m.scene.positions, mask))
+        leaves = torch.from_numpy(~mask).nonzero().squeeze(1)
+        with torch.no_grad():
+            f, _ = pred.predict(m.scene.positions, m.scene.features, near, leaves)
+        assert torch.allclose(f, m.scene.features[leaves], atol=1e-5)
+        # Stored cameras: the test views first.
+        assert len(m.cameras) == len(data.cameras)
+        assert m.cameras[0].name == data.cameras[data.test_indices[0]].name
+        expected = m.render(m.cameras[0], 0.5).image.numpy()
+        np.save(tmp_path / "expected.npy", expected)
+        code = ("import numpy as np, sys; from proxycodec.model import SceneModel; "
+                f"m = SceneModel.load({str(out)!r}); img = m.render(m.cameras[0], 0.5).image.numpy(); "
+                f"e = np.load({str(tmp_path / 'expected.npy')!r}); "
+                "sys.exit(0 if np.isfinite(img).all() and np.allclose(img, e, atol=1e-5) else 1)")
+        assert subprocess.run([sys.executable, "-c", code], timeout=120, check=False).returncode == 0
+
+    def test_resume_continues_at_the_right_iteration(self, data, tmp_path):
+        from proxycodec.model import SceneModel
+        from proxycodec.train import checkpoint_path_for
+
+        cfg = small_config(iters=24)
+        _fit(data, tmp_path / "ref.ply", cfg)
+        out = tmp_path / "scene.ply"
+        with pytest.raises(KeyboardInterrupt):
+            _fit(data, out, cfg, stop_after=14)  # interrupted in stage 2 (it starts at 12)
+        assert checkpoint_path_for(out).exists()
+        assert not out.exists()
+        logs = []
+        from proxycodec.train import fit
+
+        res = fit(data, out, cfg, dataset_root="tiny", resume=True, log=logs.append)
+        assert any("resumed" in s and "iteration 14" in s for s in logs)
+        assert res.iterations == 24
+        a, b = SceneModel.load(out).scene, SceneModel.load(tmp_path / "ref.ply").scene
+        assert a.num_anchors == b.num_anchors
+        assert torch.allclose(a.features, b.features, atol=1e-4)
+        assert torch.allclose(a.offsets, b.offsets, atol=1e-4)
+
+    def test_resume_refuses_other_settings_and_missing_checkpoint(self, data, tmp_path):
+        out = tmp_path / "scene.ply"
+        with pytest.raises(ProxycodecError, match="no checkpoint"):
+            _fit(data, out, small_config(), resume=True)
+        with pytest.raises(KeyboardInterrupt):
+            _fit(data, out, small_config(), stop_after=3)
+        with pytest.raises(ProxycodecError, match="different settings"):
+            _fit(data, out, small_config(embedding="none"), resume=True)
+
+    def test_no_partial_output_after_an_exception(self, data, tmp_path, monkeypatch):
+        from proxycodec import train
+
+        out = tmp_path / "scene.ply"
+
+        def boom(*a, **k):
+            raise RuntimeError("disk full")
+
+        # An exception while saving the pair leaves neither file (nor temporaries) behind.
+        real = train._save_model
+
+        def half(model, ply, meta, arrays):
+            real(model, ply, meta, arrays)
+            boom()
+
+        monkeypatch.setattr(train, "_save_model", half)
+        with pytest.raises(RuntimeError):
+            _fit(data, out, small_config(iters=4, proxies=False))
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["scene.ckpt.pxc"]
+        # An exception during training: no output either.
+        monkeypatch.setattr(train.Trainer, "train_step", boom)
+        with pytest.raises(RuntimeError):
+            _fit(data, tmp_path / "other.ply", small_config(iters=4))
+        assert not (tmp_path / "other.ply").exists()
+        assert not (tmp_path / "other.weights.pxc").exists()
+
+    def test_ablation_switches(self, data, tmp_path):
+        from proxycodec.model import SceneModel
+        from proxycodec.train import load_predictor
+
+        out = tmp_path / "plain.ply"
+        _fit(data, out, small_config(iters=6, fixed_res=True, gate=False, embedding="none", proxies=False))
+        m = SceneModel.load(out)
+        assert m.decoder.config.embedding == "none" and not m.decoder.config.gate.enabled
+        assert load_predictor(out.with_name("plain.weights.pxc")) == (None, None)
+
+    def test_growing_and_pruning(self, data):
+        from proxycodec.train import Trainer
+
+        tr = Trainer(data, small_config(iters=100, proxies=False, grad_threshold=1e-6), "tiny")
+        n0 = tr.anchors.num_anchors
+        for _ in range(40):
+            tr.train_step()
+        assert tr.anchors.num_anchors != n0
+        K = tr.anchors.n_offsets
+        assert tr.offset_denom.shape[0] == tr.anchors.num_anchors * K
+        assert tr.opt.m["features"].shape == tr.anchors.features.shape
+
+
+# ------------------------------------------------------------------------------------------------ CLI
+def test_cli_fit_and_eval(tiny_dataset, tmp_path):
+    from click.testing import CliRunner
+    from proxycodec.cli.main import cli
+
+    out = tmp_path / "s.ply"
+    r = CliRunner().invoke(cli, ["fit", str(tiny_dataset), "-o", str(out), "--iters", "6", "--init-points", "300",
+                                 "--no-proxies", "--max-width", "24"])
+    assert r.exit_code == 0, r.output
+    assert out.exists()
+    r = CliRunner().invoke(cli, ["eval", str(out), str(tiny_dataset), "-o", str(tmp_path / "ev"),
+                                 "--res", "0.1,0.5,1.0,1.5", "--views", "1"])
+    assert r.exit_code == 0, r.output
+    rep = json.loads((tmp_path / "ev" / "eval.json").read_text())
+    assert [d["xi"] for d in rep["per_resolution"]] == [0.1, 0.5, 1.0, 1.5]
+    assert rep["per_resolution"][2]["width"] == 24  # the scene's own --max-width is the default
+    assert all(math.isfinite(d["psnr"]) for d in rep["per_resolution"])
+    assert "LPIPS" in rep["lpips"]
+    for name in ("eval.md", "psnr_ssim_vs_resolution.png", "crops.png"):
+        assert (tmp_path / "ev" / name).stat().st_size > 0
+
+
+def test_cli_fit_bad_dataset(tmp_path):
+    from click.testing import CliRunner
+    from proxycodec.cli.main import cli
+
+    r = CliRunner().invoke(cli, ["fit", str(tmp_path), "-o", str(tmp_path / "x.ply"), "--iters", "2"])
+    assert r.exit_code == 2 and "not a dataset" in r.output
