@@ -35,15 +35,17 @@ def _stderr(msg: str) -> None:
 @click.option("--predictor-iters", default=2000, show_default=True, type=int)
 @click.option("--zstd-level", default=19, show_default=True, type=int)
 @click.option("--seed", default=0, show_default=True, type=int)
-@click.option("--images", type=click.Path(), default=None,
-              help="Dataset for a rendering loss while fitting the predictor (not implemented yet).")
 @click.option("--refit-predictor", is_flag=True,
               help="Ignore a stage-2 predictor/proxy split stored by `fit`; select proxies and fit anew.")
 @click.option("--json", "as_json", is_flag=True, help="Print the encode report as JSON on stdout.")
 @user_errors
 def encode(scene, out, weights, proxy_ratio, cell_size, feature_bits, offset_bits, scaling_bits, weights_dtype,
-           predict_offsets, predictor_iters, zstd_level, seed, images, refit_predictor, as_json) -> None:
-    """Compress an anchor scene (Scaffold-GS PLY + weights sidecar) to a proxy-anchor container."""
+           predict_offsets, predictor_iters, zstd_level, seed, refit_predictor, as_json) -> None:
+    """Compress an anchor scene (Scaffold-GS PLY + weights sidecar) to a proxy-anchor container.
+
+    The residual predictor is fitted here on the scene's own features (L_recon). A predictor trained jointly with
+    the rendering loss comes from `proxycodec fit` (stage 2) and is used as it is when the scene carries one.
+    """
     from .. import codec
 
     out = out or str(Path(scene).with_suffix(".pxc"))
@@ -51,7 +53,7 @@ def encode(scene, out, weights, proxy_ratio, cell_size, feature_bits, offset_bit
     r = codec.encode(source, out, proxy_ratio=proxy_ratio, cell_size=cell_size, feature_bits=feature_bits,
                      offset_bits=offset_bits, scaling_bits=scaling_bits, weights_dtype=weights_dtype,
                      predict_offsets=predict_offsets, predictor_iters=predictor_iters, zstd_level=zstd_level,
-                     seed=seed, images=images, use_fitted=not refit_predictor, progress=_stderr)
+                     seed=seed, use_fitted=not refit_predictor, progress=_stderr)
     if as_json:
         click.echo(json.dumps(r.to_json(), indent=2))
     else:

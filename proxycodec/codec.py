@@ -67,7 +67,6 @@ class EncodeConfig:
     predictor_lr: float = 2e-3
     zstd_level: int = 19
     seed: int = 0
-    images: str | None = None  # rendering loss during encode: not implemented (see encode)
     use_fitted: bool = True  # a stage-2 predictor + proxy mask in the weights sidecar (proxycodec fit) is used as is
 
     def check(self) -> "EncodeConfig":
@@ -289,11 +288,6 @@ def encode(
         raise ProxycodecError(f"unknown encode option(s): {', '.join(sorted(unknown))}")
     cfg = replace(config, **knobs).check()
     say = progress or _progress_default
-    if cfg.images is not None:
-        # TODO(issue #5): joint fine-tuning with the rendering loss needs the trainer (stage 2, proxycodec.train).
-        raise ProxycodecError("--images (fine-tuning the predictor with the rendering loss) is not implemented in "
-                              "encode yet; the predictor is fitted on features only (L_recon). Train with the "
-                              "rendering loss in stage 2 and pass the predictor to encode instead")
     t_start = time.perf_counter()
     model, source_bytes, source_name, (fitted_pred, fitted_mask) = _source_model(source)
     scene = model.scene.validate(source_name)

@@ -20,6 +20,7 @@ import torch
 from torch import nn
 
 from .errors import ProxycodecError
+from .weights import load_state_arrays, state_arrays
 from .render.project import GateConfig
 
 EMBEDDINGS = ("film", "additive", "none")
@@ -186,25 +187,11 @@ class GaussianDecoder(nn.Module):
 
     # -------------------------------------------------------------- persistence (raw arrays + JSON, no pickle)
     def state_arrays(self) -> dict[str, np.ndarray]:
-        return {k: v.detach().cpu().float().numpy().copy() for k, v in self.state_dict().items()}
+        return state_arrays(self)
 
     @classmethod
     def from_arrays(cls, config: DecoderConfig, arrays: dict[str, np.ndarray]) -> "GaussianDecoder":
-        dec = cls(config)
-        expected = dec.state_dict()
-        missing = sorted(set(expected) - set(arrays))
-        if missing:
-            raise ProxycodecError(f"decoder weights are missing {', '.join(missing[:4])}")
-        state = {}
-        for k, ref in expected.items():
-            a = np.asarray(arrays[k])
-            if tuple(a.shape) != tuple(ref.shape):
-                raise ProxycodecError(f"decoder weight {k} has shape {a.shape}, expected {tuple(ref.shape)}")
-            if not np.all(np.isfinite(a)):
-                raise ProxycodecError(f"decoder weight {k} contains NaN or Inf")
-            state[k] = torch.from_numpy(np.array(a, dtype=np.float32, copy=True))
-        dec.load_state_dict(state)
-        return dec
+        return load_state_arrays(cls(config), arrays, "decoder")  # type: ignore[return-value]
 
 
 def visible_anchors(positions: torch.Tensor, radius: torch.Tensor, camera, near: float = 0.01) -> torch.Tensor:

@@ -27,6 +27,7 @@ from torch import nn
 
 from .decoder import positional_encoding
 from .errors import ProxycodecError
+from .weights import load_state_arrays, state_arrays
 
 __all__ = [
     "default_cell_size", "select_proxies", "nearest_proxy", "PredictorConfig", "ResidualPredictor",
@@ -252,25 +253,11 @@ class ResidualPredictor(nn.Module):
 
     # ------------------------------------------------------------------ persistence (raw arrays, no pickle)
     def state_arrays(self) -> dict[str, np.ndarray]:
-        return {k: v.detach().cpu().float().numpy().copy() for k, v in self.state_dict().items()}
+        return state_arrays(self)
 
     @classmethod
     def from_arrays(cls, config: PredictorConfig, arrays: dict[str, np.ndarray]) -> "ResidualPredictor":
-        pred = cls(config)
-        expected = pred.state_dict()
-        missing = sorted(set(expected) - set(arrays))
-        if missing:
-            raise ProxycodecError(f"predictor weights are missing {', '.join(missing[:4])}")
-        state = {}
-        for k, ref in expected.items():
-            a = np.asarray(arrays[k])
-            if tuple(a.shape) != tuple(ref.shape):
-                raise ProxycodecError(f"predictor weight {k} has shape {a.shape}, expected {tuple(ref.shape)}")
-            if not np.all(np.isfinite(a)):
-                raise ProxycodecError(f"predictor weight {k} contains NaN or Inf")
-            state[k] = torch.from_numpy(np.array(a, dtype=np.float32, copy=True))
-        pred.load_state_dict(state)
-        return pred
+        return load_state_arrays(cls(config), arrays, "predictor")  # type: ignore[return-value]
 
 
 def recon_loss(pred: torch.Tensor, target: torch.Tensor, cos_weight: float = 0.1) -> torch.Tensor:

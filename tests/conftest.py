@@ -29,3 +29,18 @@ def shared_data_path(*parts: str) -> Path:
 def shared_data() -> Path:
     """The ``../shared/data`` folder; skips the test when it is absent."""
     return shared_data_path()
+
+
+@pytest.fixture(scope="module")
+def one_thread():
+    """Run a module's tiny cases on one thread (torch and numba): on a loaded 2-core machine intra-op threads cost
+    far more than they save. Modules opt in with ``pytestmark = pytest.mark.usefixtures("one_thread")``."""
+    import numba
+    import torch
+
+    old_t, old_n = torch.get_num_threads(), numba.get_num_threads()
+    torch.set_num_threads(1)
+    numba.set_num_threads(1)
+    yield
+    torch.set_num_threads(old_t)
+    numba.set_num_threads(old_n)

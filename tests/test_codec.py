@@ -217,10 +217,6 @@ class TestEncodeErrors:
                 codec.encode(m, tmp_path / "x.pxc", **kw)
         assert not (tmp_path / "x.pxc").exists()
 
-    def test_images_is_a_clear_not_implemented_error(self, tmp_path):
-        with pytest.raises(ProxycodecError, match="not implemented"):
-            codec.encode(tiny_model(50), tmp_path / "x.pxc", images="somewhere")
-
     def test_scene_sections_inconsistent_with_metadata(self, encoded, tmp_path):
         _, path, _ = encoded
         c = read_container(path)
@@ -301,8 +297,7 @@ class TestCli:
         m = tiny_model(50)
         ply, _ = m.save(tmp_path / "s.ply")
         run = CliRunner().invoke
-        for args in (["encode", str(ply), "--images", str(tmp_path)],
-                     ["encode", str(ply), "--proxy-ratio", "2"],
+        for args in (["encode", str(ply), "--proxy-ratio", "2"],
                      ["decode", str(ply)],
                      ["decode", str(tmp_path / "missing.pxc")],
                      ["stats", str(tmp_path / "missing.pxc")]):

@@ -22,17 +22,7 @@ from proxycodec.render import available_backends
 from proxycodec.scene import AnchorScene, estimate_voxel_size
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    """Tiny cases: on a loaded 2-core machine intra-op threads cost more than they save."""
-    import numba
-
-    old_t, old_n = torch.get_num_threads(), numba.get_num_threads()
-    torch.set_num_threads(1)
-    numba.set_num_threads(1)
-    yield
-    torch.set_num_threads(old_t)
-    numba.set_num_threads(old_n)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 @pytest.fixture(params=["reference", "cpu"])

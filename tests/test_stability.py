@@ -27,17 +27,7 @@ from proxycodec.scene import AnchorScene
 ALL_BACKENDS = ("reference", "cpu")
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    """These cases are tiny: on a loaded 2-core machine, intra-op threads cost 10x more than they save."""
-    import numba
-
-    old_t, old_n = torch.get_num_threads(), numba.get_num_threads()
-    torch.set_num_threads(1)
-    numba.set_num_threads(1)
-    yield
-    torch.set_num_threads(old_t)
-    numba.set_num_threads(old_n)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def _backend(name: str) -> str:
