@@ -37,6 +37,9 @@ class DecoderConfig:
     pe_res_freqs: int = 4
     scene_center: tuple[float, float, float] = (0.0, 0.0, 0.0)
     scene_radius: float = 1.0
+    #: The resolution band the embedding was trained on; outside it the embedding sees the nearest end of the band
+    #: instead of extrapolating (measured on lego: +1.2..2.6 dB at 2.5-7.5%, +0.4..2.5 dB at 120-150%).
+    film_xi_range: tuple[float, float] = (0.1, 1.0)
     gate: GateConfig = field(default_factory=GateConfig)
 
     def __post_init__(self) -> None:
@@ -54,6 +57,9 @@ class DecoderConfig:
                 raise ProxycodecError(f"decoder {k} = {getattr(self, k)} is out of range (0..32)")
         if len(self.scene_center) != 3 or not all(math.isfinite(float(v)) for v in self.scene_center):
             raise ProxycodecError(f"scene centre must be 3 finite numbers, got {self.scene_center!r}")
+        lo, hi = (float(v) for v in self.film_xi_range) if len(self.film_xi_range) == 2 else (math.nan, math.nan)
+        if not (0.025 <= lo <= hi <= 2.0):
+            raise ProxycodecError(f"film_xi_range must be [lo, hi] within [0.025, 2], got {self.film_xi_range!r}")
 
     def to_json(self) -> dict:
         d = asdict(self)
@@ -72,8 +78,9 @@ class DecoderConfig:
                 raise ProxycodecError("bad decoder configuration: gate kappa and eta must be finite")
             known = {f for f in DecoderConfig.__dataclass_fields__ if f != "gate"}
             kw = {k: v for k, v in d.items() if k in known}
-            if "scene_center" in kw:
-                kw["scene_center"] = tuple(float(x) for x in kw["scene_center"])
+            for k in ("scene_center", "film_xi_range"):
+                if k in kw:
+                    kw[k] = tuple(float(x) for x in kw[k])
             for k in ("feat_dim", "n_offsets", "hidden", "film_hidden", "pe_pos_freqs", "pe_res_freqs"):
                 if k in kw:
                     kw[k] = int(kw[k])
@@ -142,7 +149,8 @@ class GaussianDecoder(nn.Module):
             return features
         c = torch.as_tensor(cfg.scene_center, dtype=positions.dtype, device=positions.device)
         xn = ((positions - c) / cfg.scene_radius).clamp(-4.0, 4.0)
-        s = torch.full_like(positions[:, :1], math.log2(float(xi)) / 4.0)
+        lo, hi = cfg.film_xi_range
+        s = torch.full_like(positions[:, :1], math.log2(min(max(float(xi), lo), hi)) / 4.0)
         pe = torch.cat([positional_encoding(xn, cfg.pe_pos_freqs), positional_encoding(s, cfg.pe_res_freqs)], -1)
         out = self.mlp_embed(pe)
         if cfg.embedding == "additive":

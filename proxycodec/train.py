@@ -155,6 +155,7 @@ class FitConfig:
     def decoder_config(self, center, radius: float) -> DecoderConfig:
         return DecoderConfig(feat_dim=self.feat_dim, n_offsets=self.n_offsets, embedding=self.embedding,
                              scene_center=tuple(float(c) for c in center), scene_radius=float(radius),
+                             film_xi_range=(1.0, 1.0) if self.fixed_res else (self.xi_min, self.xi_max),
                              gate=GateConfig(self.gate, self.gate_kappa, self.gate_eta))
 
 

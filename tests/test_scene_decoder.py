@@ -135,3 +135,19 @@ def test_a_ply_and_weights_that_do_not_belong_together_are_refused(tmp_path):
     with pytest.raises(ProxycodecError, match="different anchor PLY"):
         SceneModel.load(a_ply)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.ply", "a.weights.pxc", "b.weights.pxc"]
+
+
+def test_film_does_not_extrapolate_outside_its_training_band():
+    s = tiny_scene(20)
+    dec = tiny_decoder(film_xi_range=(0.1, 1.0))
+    with torch.no_grad():
+        dec.mlp_embed[2].weight.normal_()
+    e = lambda xi: dec.embed(s.positions, s.features, xi)  # noqa: E731
+    assert torch.equal(e(0.025), e(0.1)) and torch.equal(e(2.0), e(1.0))
+    assert not torch.equal(e(0.1), e(0.5))
+    cfg = DecoderConfig.from_json(DecoderConfig(film_xi_range=(0.2, 0.9)).to_json())
+    assert cfg.film_xi_range == (0.2, 0.9)
+    assert DecoderConfig.from_json({k: v for k, v in DecoderConfig().to_json().items()
+                                    if k != "film_xi_range"}).film_xi_range == (0.1, 1.0)
+    with pytest.raises(ProxycodecError, match="film_xi_range"):
+        DecoderConfig(film_xi_range=(1.0, 0.1))
