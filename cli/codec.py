@@ -28,8 +28,10 @@ def _stderr(msg: str) -> None:
 @click.option("--feature-bits", default=8, show_default=True, type=int, help="Proxy features (1-16, 32 = float).")
 @click.option("--offset-bits", default=6, show_default=True, type=int, help="Offsets (1-16, 32 = float).")
 @click.option("--scaling-bits", default=8, show_default=True, type=int, help="Scalings (1-16, 32 = float).")
-@click.option("--weights-dtype", default="f16", show_default=True, type=click.Choice(["f16", "f32"]),
-              help="MLP weights precision.")
+@click.option("--weights-dtype", default="f16", show_default=True, type=click.Choice(["f16", "f32", "q8"]),
+              help="MLP weights precision (q8: int8 matrices with per-row scales).")
+@click.option("--max-cameras", default=16, show_default=True, type=int,
+              help="Default cameras kept in the container (evenly spaced).")
 @click.option("--predict-offsets/--store-offsets", default=False, show_default=True,
               help="Predict leaf offsets too instead of storing them.")
 @click.option("--predictor-iters", default=2000, show_default=True, type=int)
@@ -40,7 +42,7 @@ def _stderr(msg: str) -> None:
 @click.option("--json", "as_json", is_flag=True, help="Print the encode report as JSON on stdout.")
 @user_errors
 def encode(scene, out, weights, proxy_ratio, cell_size, feature_bits, offset_bits, scaling_bits, weights_dtype,
-           predict_offsets, predictor_iters, zstd_level, seed, refit_predictor, as_json) -> None:
+           predict_offsets, max_cameras, predictor_iters, zstd_level, seed, refit_predictor, as_json) -> None:
     """Compress an anchor scene (Scaffold-GS PLY + weights sidecar) to a proxy-anchor container.
 
     The residual predictor is fitted here on the scene's own features (L_recon). A predictor trained jointly with
@@ -52,7 +54,7 @@ def encode(scene, out, weights, proxy_ratio, cell_size, feature_bits, offset_bit
     source = (scene, weights) if weights else scene
     r = codec.encode(source, out, proxy_ratio=proxy_ratio, cell_size=cell_size, feature_bits=feature_bits,
                      offset_bits=offset_bits, scaling_bits=scaling_bits, weights_dtype=weights_dtype,
-                     predict_offsets=predict_offsets, predictor_iters=predictor_iters, zstd_level=zstd_level,
+                     predict_offsets=predict_offsets, max_cameras=max_cameras, predictor_iters=predictor_iters, zstd_level=zstd_level,
                      seed=seed, use_fitted=not refit_predictor, progress=_stderr)
     if as_json:
         click.echo(json.dumps(r.to_json(), indent=2))

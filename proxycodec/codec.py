@@ -59,7 +59,8 @@ class EncodeConfig:
     feature_bits: int = 8  # proxy features, uniform per channel (32 = float32)
     offset_bits: int = 6  # 8 -> 6 bits: -24% file size, no measurable PSNR change on the sample (SPEC.md)
     scaling_bits: int = 8
-    weights_dtype: str = "f16"  # MLP weights: "f16" | "f32"
+    weights_dtype: str = "f16"  # MLP weights: "f16" | "f32" | "q8" (int8 matrices with per-row scales)
+    max_cameras: int = 16  # default cameras kept in the container (evenly spaced over the model's cameras)
     predict_offsets: bool = False  # False: every anchor's offsets are stored; True: leaves' are predicted
     predictor_hidden: int = 64
     predictor_blocks: int = 2
@@ -78,8 +79,10 @@ class EncodeConfig:
             b = getattr(self, k)
             if not (1 <= b <= 16 or b == FLOAT_BITS):
                 raise ProxycodecError(f"{k.replace('_', ' ')} must be 1..16 or 32 (float32), got {b}")
-        if self.weights_dtype not in ("f16", "f32"):
-            raise ProxycodecError(f"weights dtype must be f16 or f32, got {self.weights_dtype!r}")
+        if self.weights_dtype not in ("f16", "f32", "q8"):
+            raise ProxycodecError(f"weights dtype must be f16, f32 or q8, got {self.weights_dtype!r}")
+        if self.max_cameras < 0:
+            raise ProxycodecError("max cameras must be >= 0")
         if not (1 <= self.zstd_level <= 22):
             raise ProxycodecError(f"zstd level must be 1..22, got {self.zstd_level}")
         if self.predictor_iters < 0:
@@ -212,11 +215,21 @@ def _small_int(a: np.ndarray) -> np.ndarray:
 
 
 # ---------------------------------------------------------------------------------------------- helpers
+QSCALE = ".qscale"  # suffix of the per-row scale section of an int8 ("q8") weight matrix
+
+
 def _weights_to_sections(prefix: str, arrays: dict[str, np.ndarray], dtype: str) -> dict[str, np.ndarray]:
+    """f32; f16 (where representable); or q8: matrices as int8 with a float32 scale per output row
+    (symmetric, ``w = q * scale``), vectors (biases) as f16."""
     out = {}
     for k, v in arrays.items():
         v = np.asarray(v, dtype=np.float32)
-        if dtype == "f16" and np.all(np.abs(v) <= 65504.0):
+        if dtype == "q8" and v.ndim == 2:
+            scale = (np.abs(v).max(axis=1) / 127.0).astype(np.float32)
+            safe = np.where(scale > 0, scale, 1.0).astype(np.float32)
+            out[f"{prefix}/{k}"] = np.clip(np.rint(v / safe[:, None]), -127, 127).astype(np.int8)
+            out[f"{prefix}/{k}{QSCALE}"] = scale
+        elif dtype in ("f16", "q8") and np.all(np.abs(v) <= 65504.0):
             out[f"{prefix}/{k}"] = v.astype(np.float16)
         else:
             out[f"{prefix}/{k}"] = v
@@ -411,7 +424,8 @@ def encode(
                      "loss": "feature L_recon (MSE + 0.1 cos)", "rendering_loss": False},
         "proxy": {"source": "fit" if use_fitted else "encode", "ratio": cfg.proxy_ratio, "cell_size": cell_size, "cell_size_voxels": cell_size / voxel,
                   "cell_target": cfg.cell_target, "seed": cfg.seed},
-        "cameras": [c.to_json() for c in model.cameras] if model.cameras else [],
+        "cameras": [c.to_json() for c in _spread(model.cameras or [], cfg.max_cameras)],
+        "cameras_in_source": len(model.cameras or []),
         "background": [float(x) for x in model.background],
         "scene": _jsonable(dict(scene.metadata)),
         "source": {"bytes": source_bytes, "name": os.path.basename(source_name)},
@@ -428,6 +442,13 @@ def encode(
         sections=[s.to_json() for s in infos], source_bytes=source_bytes,
         seconds={"total": time.perf_counter() - t_start, "predictor": t_train}, training=training,
         model=decoded, meta=meta)
+
+
+def _spread(items: list, n: int) -> list:
+    """At most ``n`` items, evenly spaced, the first one included (fit stores test cameras first)."""
+    if len(items) <= n:
+        return list(items)
+    return [items[int(i * len(items) / n)] for i in range(n)]
 
 
 def _version() -> str:
@@ -497,10 +518,19 @@ def _section(sections, name, err, shape=None, kinds="f") -> np.ndarray:
 def _weights_from_sections(prefix, sections, err) -> dict[str, np.ndarray]:
     out = {}
     for k, v in sections.items():
-        if k.startswith(prefix + "/"):
-            if v.dtype not in (np.float16, np.float32):
-                raise err(f"section {k!r}: weights must be float16 or float32")
+        if not k.startswith(prefix + "/") or k.endswith(QSCALE):
+            continue
+        if v.dtype == np.int8:
+            scale = sections.get(k + QSCALE)
+            if scale is None or scale.dtype != np.float32 or v.ndim != 2 or scale.shape != (v.shape[0],):
+                raise err(f"section {k!r}: int8 weights need a float32 per-row scale section")
+            if not np.all(np.isfinite(scale)):
+                raise err(f"section {k!r}: weight scales are not finite")
+            out[k[len(prefix) + 1:]] = (v.astype(np.float32) * scale[:, None]).astype(np.float32)
+        elif v.dtype in (np.float16, np.float32):
             out[k[len(prefix) + 1:]] = v.astype(np.float32)
+        else:
+            raise err(f"section {k!r}: weights must be float16, float32 or int8 (with scales)")
     return out
 
 

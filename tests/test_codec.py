@@ -324,3 +324,24 @@ def test_wrongly_typed_metadata_is_our_error(tmp_path):
     write_container(tmp_path / "d.pxc", meta, c.arrays)
     with pytest.raises(ContainerError, match="dist_ref"):
         codec.decode(tmp_path / "d.pxc")
+
+
+def test_q8_weights_round_trip_within_half_a_step_and_cameras_are_capped(tmp_path):
+    from proxycodec import codec
+    from proxycodec.camera import orbit_cameras
+
+    m = tiny_model(80)
+    m.cameras = orbit_cameras((0.0, 0.0, 0.1), 1.5, 40, width=32, height=24)
+    r = codec.encode(m, tmp_path / "q.pxc", weights_dtype="q8", predictor_iters=10, max_cameras=5)
+    back = codec.decode(tmp_path / "q.pxc")
+    for (k, a), (_, b) in zip(r.model.decoder.state_dict().items(), back.decoder.state_dict().items()):
+        assert torch.equal(a, b), k  # decode == what encode reported, bit for bit
+    for (k, w), (_, d) in zip(m.decoder.state_dict().items(), back.decoder.state_dict().items()):
+        if w.ndim == 2:
+            step = w.abs().amax(1, keepdim=True) / 127
+            assert ((w - d).abs() <= step / 2 + 1e-7).all(), k
+    assert [c.name for c in back.cameras] == [m.cameras[i].name for i in (0, 8, 16, 24, 32)]
+    c = read_container(tmp_path / "q.pxc")
+    assert c.arrays["decoder/mlp_cov.2.weight"].dtype == np.int8 and c.meta["cameras_in_source"] == 40
+    f16 = codec.encode(m, tmp_path / "h.pxc", weights_dtype="f16", predictor_iters=10, max_cameras=5)
+    assert r.file_bytes < f16.file_bytes
