@@ -62,6 +62,23 @@ def fit(dataset, out, iters, time_budget, max_width, seed, no_gate, embedding, f
                f"{res.seconds:.0f} s)")
 
 
+def _load_any(path):
+    """An anchor PLY (+ weights sidecar) or a proxycodec container (decoded: leaves regenerated)."""
+    from ..formats.container import MAGIC
+    from ..model import SceneModel
+
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(len(MAGIC))
+    except OSError:
+        head = b""
+    if head == MAGIC:
+        from ..codec import decode
+
+        return decode(path)
+    return SceneModel.load(path)
+
+
 @cli.command("eval")
 @click.argument("scene", type=click.Path(dir_okay=False))
 @click.argument("dataset", type=click.Path(file_okay=False))
@@ -80,10 +97,9 @@ def eval_cmd(scene, dataset, out_dir, max_width, res, n_views, images, test_ever
     plot + side-by-side crops."""
     from ..errors import ProxycodecError
     from ..evaluate import EXTRA_RESOLUTIONS, MAIN_RESOLUTIONS, evaluate, report_markdown, write_report
-    from ..model import SceneModel
     from .main import parse_resolutions
 
-    model = SceneModel.load(scene)
+    model = _load_any(scene)
     meta = model.meta
     fit_meta = meta.get("fit", {}) if isinstance(meta.get("fit"), dict) else {}
     if max_width is None:
