@@ -26,9 +26,9 @@ def _stderr(msg: str) -> None:
 @click.option("--cell-size", default=None, type=float,
               help="Proxy-selection cell size in world units (default: a voxel multiple giving ~10 anchors/cell).")
 @click.option("--feature-bits", default=8, show_default=True, type=int, help="Proxy features (1-16, 32 = float).")
-@click.option("--offset-bits", default=6, show_default=True, type=int, help="Offsets (1-16, 32 = float).")
+@click.option("--offset-bits", default=8, show_default=True, type=int, help="Offsets (1-16, 32 = float).")
 @click.option("--scaling-bits", default=8, show_default=True, type=int, help="Scalings (1-16, 32 = float).")
-@click.option("--weights-dtype", default="f16", show_default=True, type=click.Choice(["f16", "f32", "q8"]),
+@click.option("--weights-dtype", default="q8", show_default=True, type=click.Choice(["f16", "f32", "q8"]),
               help="MLP weights precision (q8: int8 matrices with per-row scales).")
 @click.option("--max-cameras", default=16, show_default=True, type=int,
               help="Default cameras kept in the container (evenly spaced).")

@@ -194,7 +194,7 @@ class TestFittedPredictor:
         arrays = {**c.arrays, **{f"predictor/{k}": v for k, v in pred.state_arrays().items()},
                   "proxy_mask": mask.astype(np.uint8)}
         write_container(weights_path_for(ply), meta, arrays)
-        r = codec.encode(ply, tmp_path / "s.pxc", **FAST)
+        r = codec.encode(ply, tmp_path / "s.pxc", **{**FAST, "weights_dtype": "f16"})
         assert r.meta["proxy"]["source"] == "fit" and r.training.iters == 0
         dec = codec.decode(tmp_path / "s.pxc")
         idx = _match(m.scene.positions.numpy(), dec.scene.positions.numpy())
