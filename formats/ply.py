@@ -193,17 +193,22 @@ def parse_ply_header(path: str | os.PathLike, raw: bytes) -> PlyHeader:
     return PlyHeader(fmt, count, tuple(props), tuple(comments), len(raw))
 
 
-def read_ply_header(path: str | os.PathLike) -> PlyHeader:
-    """Read and validate only the header of a PLY file."""
+def _open(path):
+    """Open a PLY for reading; OS errors become our one-line error naming the file."""
     try:
-        with open(path, "rb") as fh:
-            return parse_ply_header(path, _read_header_bytes(path, fh))
+        return open(path, "rb")
     except FileNotFoundError:
         raise _fail(path, "file not found") from None
     except IsADirectoryError:
         raise _fail(path, "is a directory, expected a PLY file") from None
     except PermissionError:
         raise _fail(path, "permission denied") from None
+
+
+def read_ply_header(path: str | os.PathLike) -> PlyHeader:
+    """Read and validate only the header of a PLY file."""
+    with _open(path) as fh:
+        return parse_ply_header(path, _read_header_bytes(path, fh))
 
 
 def read_ply(path: str | os.PathLike) -> tuple[PlyHeader, np.ndarray]:
@@ -212,15 +217,7 @@ def read_ply(path: str | os.PathLike) -> tuple[PlyHeader, np.ndarray]:
     Raises :class:`ProxycodecError` for any malformed input, before allocating anything proportional to the
     declared vertex count.
     """
-    try:
-        fh = open(path, "rb")
-    except FileNotFoundError:
-        raise _fail(path, "file not found") from None
-    except IsADirectoryError:
-        raise _fail(path, "is a directory, expected a PLY file") from None
-    except PermissionError:
-        raise _fail(path, "permission denied") from None
-    with fh:
+    with _open(path) as fh:
         file_size = os.fstat(fh.fileno()).st_size
         header = parse_ply_header(path, _read_header_bytes(path, fh))
         payload = file_size - header.header_size

@@ -524,12 +524,13 @@ _SMALL_WORK = 16_384
 
 
 @contextlib.contextmanager
-def _pool(work: int):
-    """Thread count for the next kernels (numba's setting is thread-local)."""
+def threads_for(work: int, small: int = _SMALL_WORK):
+    """Thread count for the next kernels (numba's setting is thread-local): one thread below ``small`` units of
+    work, else the pool's. Yields the count in force."""
     prev = numba.get_num_threads()
-    numba.set_num_threads(1 if work < _SMALL_WORK else prev)
+    numba.set_num_threads(1 if work < small else prev)
     try:
-        yield
+        yield numba.get_num_threads()
     finally:
         numba.set_num_threads(prev)
 
@@ -614,7 +615,7 @@ class _RasterizeCPU(torch.autograd.Function):
             ctx.binned = None
             img = torch.from_numpy(np.broadcast_to(bg64, (height, width, nch)).copy()).to(dt)
             return img, torch.zeros(height, width, dtype=dt)
-        with _pool(n + width * height):
+        with threads_for(n + width * height):
             b = _bin(means2d, conics, opacities, colors, depths, extent, width, height)
             np_dt = b.mxy.dtype
             img = np.empty((height, width, nch), np_dt)
@@ -648,7 +649,7 @@ class _RasterizeCPU(torch.autograd.Function):
                     torch.zeros(0, nch, dtype=dt), None, None, None, None, g_bg)
         gbuf = np.zeros((b.n_isect, _NG + nch), np.float64)
         out = np.empty((n, _NG + nch), b.mxy.dtype)
-        with _pool(n + width * height):
+        with threads_for(n + width * height):
             with _per_tile():
                 _backward(b.tile_off, b.tile_order, b.isect_g, b.tm_gm, b.geo, b.mxy, b.con, b.op, b.col, b.pcx,
                           b.pcy, b.k_dt, ctx.bg64, width, height, b.tiles_x, ctx.t_fin, ctx.nc, g_img, g_alpha, gbuf)

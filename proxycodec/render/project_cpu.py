@@ -22,14 +22,13 @@ gives them a gradient. Culled Gaussians get zero gradient.
 
 from __future__ import annotations
 
-import contextlib
 import math
 
-import numba
 import numpy as np
 import torch
 from numba import njit, prange
 
+from .cpu import threads_for
 from .project import ALPHA_MIN, DILATION, GATE_DET_FLOOR, QUAT_EPS, GateConfig, Projected, project_gaussians
 
 _PAR = {"parallel": True, "fastmath": False, "cache": True, "nogil": True}
@@ -355,14 +354,8 @@ def _backward(means, quats, scales, opac, k, gate_on, n_chunks, scratch, idx, g_
 _SMALL_WORK = 8_192
 
 
-@contextlib.contextmanager
 def _threads(n: int):
-    prev = numba.get_num_threads()
-    numba.set_num_threads(1 if n < _SMALL_WORK else prev)
-    try:
-        yield numba.get_num_threads()
-    finally:
-        numba.set_num_threads(prev)
+    return threads_for(n, _SMALL_WORK)  # reads the module constant at call time (tests lower it)
 
 
 def _n_chunks(n: int, threads: int) -> int:
