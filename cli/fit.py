@@ -16,13 +16,27 @@ def _load_data(dataset: str, max_width: int | None, images: str, test_every: int
 
     if dataset_kind(dataset) == "blender":
         return load_blender(dataset, max_width=max_width)
-    return load_colmap(dataset, images=images, max_width=max_width, test_every=test_every)
+    ctx = click.get_current_context(silent=True)
+    undistort = not (ctx is not None and ctx.meta.get(_NO_UNDISTORT_KEY, False))
+    return load_colmap(dataset, images=images, max_width=max_width, test_every=test_every, undistort=undistort)
+
+
+_NO_UNDISTORT_KEY = "proxycodec.no_undistort"
+
+
+def _no_undistort_option(fn):
+    """``--no-undistort`` (fit, eval): recorded in the click context's ``meta`` and read by :func:`_load_data`."""
+    return click.option(
+        "--no-undistort", is_flag=True, expose_value=False,
+        callback=lambda ctx, _param, value: ctx.meta.__setitem__(_NO_UNDISTORT_KEY, bool(value)),
+        help="COLMAP: refuse cameras with lens distortion instead of undistorting their images to a pinhole "
+             "camera at load time (SIMPLE_RADIAL, RADIAL, OPENCV, FULL_OPENCV).")(fn)
 
 
 @cli.command()
 @click.argument("dataset", type=click.Path(file_okay=False))
 @click.option("-o", "--out", default="scene.ply", show_default=True, type=click.Path(dir_okay=False),
-              help="Anchor PLY to write (weights go beside it as OUT.weights.pxc).")
+              help="Anchor PLY to write (weights go beside it as OUT.weights.pxc); with --explicit an INRIA 3DGS PLY.")
 @click.option("--iters", type=int, default=None, help="Training iterations [default: 3000 without --time-budget].")
 @click.option("--time-budget", type=float, default=None, help="Seconds of training; schedules follow elapsed time.")
 @click.option("--max-width", type=int, default=1600, show_default=True,
@@ -35,23 +49,39 @@ def _load_data(dataset: str, max_width: int | None, images: str, test_every: int
 @click.option("--no-proxies", is_flag=True, help="Ablation: Scaffold-GS only (no proxy anchors / predictor).")
 @click.option("--voxel-size", type=float, default=0.0, show_default=True,
               help="Anchor voxel size; <= 0: scene extent / 128.")
-@click.option("--init-points", type=int, default=5_000, show_default=True,
-              help="Random initial points when the dataset has no SfM points (Blender).")
+@click.option("--init-points", type=int, default=None,
+              help="Random initial points when the dataset has no SfM points (Blender) "
+                   "[default: 5000; 10000 with --explicit].")
 @click.option("--images", default="images", show_default=True, help="COLMAP image folder.")
 @click.option("--test-every", type=int, default=8, show_default=True, help="COLMAP: every N-th image is a test view.")
+@_no_undistort_option
 @click.option("--resume", is_flag=True, help="Continue from OUT's checkpoint (OUT.ckpt.pxc).")
 @click.option("--checkpoint-every", type=float, default=300.0, show_default=True, help="Seconds between checkpoints.")
 @click.option("--keep-checkpoint", is_flag=True, help="Keep the checkpoint after a successful run.")
 @click.option("--backend", default="auto", show_default=True, type=click.Choice(["auto", "reference", "cpu", "cuda"]))
+@click.option("--explicit", is_flag=True,
+              help="Baseline: train plain 3DGS (explicit Gaussians, SH colours, clone/split/prune, no gate, 100% "
+                   "resolution) with the same data, budget and rasterizer, and write OUT as an INRIA 3DGS PLY "
+                   "only (no weights). Anchor-only options do not apply.")
+@click.option("--sh-degree", type=click.IntRange(0, 3), default=1, show_default=True,
+              help="With --explicit: spherical-harmonics degree of the Gaussians' colours.")
 @user_errors
 def fit(dataset, out, iters, time_budget, max_width, seed, no_gate, embedding, fixed_res, no_proxies, voxel_size,
-        init_points, images, test_every, resume, checkpoint_every, keep_checkpoint, backend) -> None:
-    """Train an anchor scene on DATASET (Blender or COLMAP folder, detected by its files) and write OUT."""
+        init_points, images, test_every, resume, checkpoint_every, keep_checkpoint, backend, explicit,
+        sh_degree) -> None:
+    """Train an anchor scene on DATASET (Blender or COLMAP folder, detected by its files) and write OUT
+    (with --explicit: the plain 3DGS baseline, an INRIA PLY)."""
     from ..train import FitConfig
     from ..train import fit as run_fit
 
     if iters is None and time_budget is None:
         iters = 3000
+    if explicit:
+        _fit_explicit(dataset, out, iters, time_budget, max_width, seed, init_points, images, test_every, resume,
+                      backend, sh_degree)
+        return
+    if init_points is None:
+        init_points = 5_000
     cfg = FitConfig(iters=iters, time_budget=time_budget, seed=seed, max_width=max_width, gate=not no_gate,
                     embedding=embedding, fixed_res=fixed_res, proxies=not no_proxies, voxel_size=voxel_size,
                     init_points=init_points, checkpoint_every=checkpoint_every, backend=backend)
@@ -62,8 +92,30 @@ def fit(dataset, out, iters, time_budget, max_width, seed, no_gate, embedding, f
                f"{res.seconds:.0f} s)")
 
 
+def _fit_explicit(dataset, out, iters, time_budget, max_width, seed, init_points, images, test_every, resume,
+                  backend, sh_degree) -> None:
+    """``fit --explicit``: the plain 3DGS baseline (``proxycodec.explicit``)."""
+    import torch
+
+    from ..errors import ProxycodecError
+    from ..explicit import ExplicitConfig, run_explicit
+
+    if resume:
+        raise ProxycodecError("--resume is not supported with --explicit (the baseline keeps no checkpoints)")
+    kw = {} if init_points is None else {"init_points": init_points}
+    cfg = ExplicitConfig(iters=iters, time_budget=time_budget, seed=seed, max_width=max_width, sh_degree=sh_degree,
+                         backend=backend, **kw)
+    torch.set_num_threads(2)
+    data = _load_data(dataset, max_width, images, test_every)
+    tr = run_explicit(data, cfg, lambda s: click.echo(s, err=True), out=out)
+    click.echo(f"wrote {out} ({tr.num_gaussians} Gaussians, SH degree {sh_degree}, {tr.iteration} iterations, "
+               f"{tr.elapsed:.0f} s, {Path(out).stat().st_size:,} B)")
+
+
 def _load_any(path):
-    """An anchor PLY (+ weights sidecar) or a proxycodec container (decoded: leaves regenerated)."""
+    """An anchor PLY (+ weights sidecar), an INRIA 3DGS PLY (``fit --explicit``, other 3DGS trainers: rendered as
+    plain 3DGS) or a proxycodec container (decoded: leaves regenerated)."""
+    from ..explicit import ExplicitModel, is_inria_ply
     from ..formats.container import MAGIC
     from ..model import SceneModel
 
@@ -76,6 +128,8 @@ def _load_any(path):
         from ..codec import decode
 
         return decode(path)
+    if is_inria_ply(path):
+        return ExplicitModel.load(path)
     return SceneModel.load(path)
 
 
@@ -90,6 +144,7 @@ def _load_any(path):
 @click.option("--views", "n_views", type=int, default=None, help="Evaluate only the first N test views.")
 @click.option("--images", default="images", show_default=True, help="COLMAP image folder.")
 @click.option("--test-every", type=int, default=8, show_default=True)
+@_no_undistort_option
 @click.option("--backend", default="auto", show_default=True, type=click.Choice(["auto", "reference", "cpu", "cuda"]))
 @user_errors
 def eval_cmd(scene, dataset, out_dir, max_width, res, n_views, images, test_every, backend) -> None:
@@ -97,6 +152,7 @@ def eval_cmd(scene, dataset, out_dir, max_width, res, n_views, images, test_ever
     plot + side-by-side crops."""
     from ..errors import ProxycodecError
     from ..evaluate import EXTRA_RESOLUTIONS, MAIN_RESOLUTIONS, evaluate, report_markdown, write_report
+    from ..explicit import ExplicitModel
     from .main import parse_resolutions
 
     model = _load_any(scene)
@@ -105,6 +161,8 @@ def eval_cmd(scene, dataset, out_dir, max_width, res, n_views, images, test_ever
     if max_width is None:
         max_width = (fit_meta.get("config") or {}).get("max_width")
     data = _load_data(dataset, max_width, images, test_every)
+    if isinstance(model, ExplicitModel):  # a PLY carries no background: the dataset's, as in training
+        model.background = tuple(data.background)
     resolutions = parse_resolutions(res) if res else list(MAIN_RESOLUTIONS + EXTRA_RESOLUTIONS)
     views = list(data.test_indices)
     if n_views is not None:

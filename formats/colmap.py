@@ -32,6 +32,7 @@ import numpy as np
 from ..camera import Camera
 from ..errors import ProxycodecError
 from .images import DEFAULT_CACHE_BYTES, PosedImages, image_file_size, look_at_bounds
+from .undistort import UNDISTORTABLE_MODELS, DistortedCamera, RemapCache, Undistorter
 
 __all__ = [
     "CAMERA_MODELS",
@@ -524,7 +525,8 @@ def pinhole_intrinsics(
     if cam.model not in _PINHOLE_LIKE:
         raise ProxycodecError(
             f"camera {cam.id} uses the {cam.model} model (fisheye); proxycodec needs undistorted "
-            "pinhole images: undistort them first (e.g. `colmap image_undistorter`)",
+            "pinhole images and undistorts only the SIMPLE_RADIAL, RADIAL, OPENCV and FULL_OPENCV models itself: "
+            "undistort them first (e.g. `colmap image_undistorter`)",
             path,
         )
     ifx, ify, icx, icy = _PINHOLE_LIKE[cam.model]
@@ -532,10 +534,15 @@ def pinhole_intrinsics(
     dist = cam.params[n_intr:]
     if np.any(dist != 0):
         coeffs = ", ".join(f"{v:.6g}" for v in dist)
+        hint = (
+            " (or load with undistortion on: the default, turned off by --no-undistort / undistort=False)"
+            if cam.model in UNDISTORTABLE_MODELS
+            else ""
+        )
         raise ProxycodecError(
             f"camera {cam.id} uses the {cam.model} model with non-zero distortion ({coeffs}); "
             "proxycodec needs undistorted pinhole images: undistort them first "
-            "(e.g. `colmap image_undistorter`)",
+            f"(e.g. `colmap image_undistorter`){hint}",
             path,
         )
     p = cam.params
@@ -550,13 +557,18 @@ def load_colmap(
     test_every: int = 8,
     background: Sequence[float] = (0.0, 0.0, 0.0),
     cache_bytes: int = DEFAULT_CACHE_BYTES,
+    undistort: bool = True,
 ) -> PosedImages:
     """Load a COLMAP scene folder (``<root>/sparse/0`` + ``<root>/<images>/``).
 
     * Cameras are sorted by image name; test = every ``test_every``-th image in that order (index % test_every
       == 0, the Mip-NeRF 360 convention), the rest train; ``test_every=0`` means no test split.
-    * Only pinhole cameras are accepted (radial models with all-zero distortion count as pinhole); otherwise
-      :class:`ProxycodecError` says to undistort the images first.
+    * Pinhole cameras are used as they are (radial models with all-zero distortion count as pinhole). With
+      ``undistort`` (the default) cameras of the SIMPLE_RADIAL, RADIAL, OPENCV and FULL_OPENCV models with
+      non-zero distortion become the pinhole camera of :meth:`DistortedCamera.pinhole` (same size and principal
+      point, focal scaled so that no output pixel is blank, as ``colmap image_undistorter``), and their images
+      are undistorted lazily, at full resolution, when loaded (:mod:`.undistort`). Other models (fisheye, FOV),
+      and any distortion when ``undistort`` is False, raise :class:`ProxycodecError` saying to undistort first.
     * ``images`` may name a downscaled folder (``images_4``): intrinsics are scaled per axis by the ratio of
       the actual image size to the COLMAP camera size (which must agree in aspect ratio to within a pixel).
     * ``max_width`` then applies 3DGS's rule (:meth:`Camera.with_max_width`) to get the 100% reference
@@ -580,15 +592,20 @@ def load_colmap(
         raise ProxycodecError(f"image folder {images!r} not found", root)
     if not model.images:
         raise ProxycodecError("COLMAP model has no registered images", sparse)
-    intr = {
-        cid: pinhole_intrinsics(model.cameras[cid], cam_file)
-        for cid in sorted({im.camera_id for im in model.images})
-    }
+    intr: dict[int, tuple[float, float, float, float] | None] = {}  # None: undistorted per image size
+    for cid in sorted({im.camera_id for im in model.images}):
+        cc = model.cameras[cid]
+        if undistort and _needs_undistortion(cc):
+            intr[cid] = None
+        else:
+            intr[cid] = pinhole_intrinsics(cc, cam_file)
+    remap_cache = RemapCache()
+    undistorters: dict[DistortedCamera, Undistorter] = {}
+    per_image: list[Undistorter | None] = []
     cams: list[Camera] = []
     sizes: list[tuple[int, int]] = []
     for im in sorted(model.images, key=lambda m: m.name):
         cc = model.cameras[im.camera_id]
-        fx, fy, cx, cy = intr[im.camera_id]
         path = img_dir / im.name
         w, h = image_file_size(path)
         if (w, h) != (cc.width, cc.height):
@@ -599,7 +616,23 @@ def load_colmap(
                     "(not a uniformly scaled copy)",
                     path,
                 )
+        else:
+            sx = sy = 1.0
+        pin = intr[im.camera_id]
+        if pin is None:
+            try:
+                dc = DistortedCamera.from_colmap(cc.model, cc.params, cc.width, cc.height, (w, h))
+                und = undistorters.get(dc)
+                if und is None:
+                    und = undistorters[dc] = Undistorter(dc, remap_cache)
+                fx, fy, cx, cy = und.camera.pinhole()  # the shared camera: its scale is computed once
+            except ProxycodecError as e:
+                raise ProxycodecError(f"camera {cc.id}: {e.reason}", cam_file) from None
+            per_image.append(und)
+        else:
+            fx, fy, cx, cy = pin
             fx, fy, cx, cy = fx * sx, fy * sy, cx * sx, cy * sy
+            per_image.append(None)
         cam = Camera(im.world_to_camera, fx, fy, cx, cy, w, h, name=im.name, image_path=str(path))
         if max_width is not None:
             cam = cam.with_max_width(int(max_width))
@@ -628,4 +661,13 @@ def load_colmap(
         root=str(root),
         kind="colmap",
         cache_bytes=cache_bytes,
+        undistorters=per_image if any(u is not None for u in per_image) else None,
     )
+
+
+def _needs_undistortion(cam: ColmapCamera) -> bool:
+    """A radial (non-fisheye) camera with some non-zero distortion coefficient."""
+    if cam.model not in UNDISTORTABLE_MODELS:
+        return False
+    ifx, ify, icx, icy = _PINHOLE_LIKE[cam.model]
+    return bool(np.any(cam.params[len({ifx, ify, icx, icy}) :] != 0))

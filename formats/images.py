@@ -3,7 +3,8 @@
 :class:`PosedImages` is what :func:`~proxycodec.formats.blender.load_blender` and
 :func:`~proxycodec.formats.colmap.load_colmap` return. Images never sit in RAM as a whole: ``load_image``
 decodes one file per call (a small LRU cache, bounded in bytes, keeps recent results), composites alpha onto
-the dataset background and resizes with an area filter to exactly ``camera.scaled(xi)``'s size.
+the dataset background, undistorts it at full resolution when the dataset has an undistorter for that image
+(COLMAP radial cameras, :mod:`.undistort`) and resizes with an area filter to exactly ``camera.scaled(xi)``'s size.
 """
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ import math
 import os
 import threading
 from collections import OrderedDict
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -198,6 +199,9 @@ class PosedImages:
     root: str = ""
     kind: str = ""  # "blender" | "colmap"
     cache_bytes: int = DEFAULT_CACHE_BYTES
+    #: per camera, None or a function float32 [H, W, 3] -> [H, W, 3] applied to the decoded file before resizing
+    #: (undistortion to the pinhole ``cameras[i]``); None: no image needs one
+    undistorters: Sequence[Callable[[np.ndarray], np.ndarray] | None] | None = None
     _cache: _ImageCache = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -209,6 +213,10 @@ class PosedImages:
             raise ProxycodecError(
                 "PosedImages: train/test indices must be distinct and within the camera list"
             )
+        if self.undistorters is not None:
+            if len(self.undistorters) != n:
+                raise ProxycodecError("PosedImages: one undistorter (or None) per camera is required")
+            object.__setattr__(self, "undistorters", list(self.undistorters))
         if any(c.image_path is None for c in self.cameras):
             raise ProxycodecError("PosedImages: every camera needs an image_path")
         bounds = np.asarray(self.bounds, dtype=np.float64)
@@ -253,6 +261,8 @@ class PosedImages:
             return hit.clone()
         path = self.cameras[i].image_path
         rgb = read_image_rgb(path, self.background, expect_size=self.file_sizes[i])
+        if self.undistorters is not None and self.undistorters[i] is not None:
+            rgb = self.undistorters[i](rgb)
         t = torch.from_numpy(resize_image(rgb, w, h))
         self._cache.put(key, t)
         return t.clone()

@@ -68,7 +68,8 @@ def _mean(xs):
 def evaluate(model, data, *, resolutions: Sequence[float] = MAIN_RESOLUTIONS + EXTRA_RESOLUTIONS,
              views: Sequence[int] | None = None, backend: str = "auto", scene_name: str = "",
              keep_images: dict | None = None, log: Callable[[str], None] | None = None) -> EvalReport:
-    """Render ``model`` (a ``SceneModel``) at the dataset's test views (indices into ``data.cameras``).
+    """Render ``model`` (a ``SceneModel`` or an ``explicit.ExplicitModel``) at the dataset's test views (indices
+    into ``data.cameras``).
 
     ``keep_images``: when a dict, (view, xi) -> (gt, render) uint8 arrays are stored in it for the views/xis it
     already names as keys (used for the side-by-side crops).
@@ -124,8 +125,10 @@ def evaluate(model, data, *, resolutions: Sequence[float] = MAIN_RESOLUTIONS + E
         "ssim_avg": _mean(d["ssim"] for d in main),
         "psnr_10": next((d["psnr"] for d in rep.per_resolution if abs(d["xi"] - 0.1) < 1e-9), None),
         "psnr_100": next((d["psnr"] for d in rep.per_resolution if abs(d["xi"] - 1.0) < 1e-9), None),
-        "anchors": int(model.scene.num_anchors),
+        "anchors": None if model.scene.num_anchors is None else int(model.scene.num_anchors),
     }
+    if model.scene.num_anchors is None:  # an explicit 3DGS scene (``explicit.ExplicitModel``): no anchors
+        rep.summary["gaussians_stored"] = int(model.scene.num_gaussians)
     return rep
 
 
@@ -138,7 +141,9 @@ def report_markdown(rep: EvalReport) -> str:
     lines = [
         f"# Evaluation of {rep.scene or 'scene'}",
         "",
-        f"Dataset `{rep.dataset}`, {s['views']} test views, {s['anchors']} anchors.",
+        (f"Dataset `{rep.dataset}`, {s['views']} test views, "
+         + (f"{s['anchors']} anchors." if s.get("anchors") is not None
+            else f"{s.get('gaussians_stored')} explicit Gaussians (plain 3DGS).")),
         "",
         (f"**Average over {len(s['resolutions_in_average'])} resolutions 10%..100%: "
          f"PSNR {_fmt(s['psnr_avg'], '.3f')} dB, SSIM {_fmt(s['ssim_avg'], '.4f')}** "

@@ -87,6 +87,12 @@ class FitConfig:
     # loss
     lambda_dssim: float = 0.2
     lambda_volume: float = 0.01
+    # Added to the opacity head's bias at initialisation. Scaffold-GS starts it at PyTorch's default (about
+    # +-0.18), so about half the neural Gaussians start with opacity <= 0 (never drawn, no gradient) and, with
+    # zero-initialised features, the rest move together: on mic (random init, 85% background) every Gaussian
+    # was below zero after 20 iterations and the scene died. +0.5 starts them at opacity 0.3-0.6, like 3DGS's
+    # visible-at-start init; empty-space Gaussians then fade with gradient instead of vanishing without one.
+    opacity_bias_init: float = 0.5
     # learning rates (Scaffold-GS defaults; exponential decay init -> final over the run)
     lr_feature: float = 0.0075
     lr_offset: tuple[float, float] = (0.01, 0.0001)
@@ -408,6 +414,8 @@ class Trainer:
             torch.tensor(anchors, dtype=torch.float32), torch.zeros(M, Fd), torch.zeros(M, K, 3),
             torch.tensor(np.repeat(scale[:, None], 6, 1), dtype=torch.float32), voxel)
         self.decoder = GaussianDecoder(config.decoder_config(center, radius))
+        with torch.no_grad():  # Gaussians start visible (see FitConfig.opacity_bias_init)
+            self.decoder.mlp_opacity[-1].bias.add_(config.opacity_bias_init)
         self.predictor = None
         self.proxy_mask: torch.Tensor | None = None  # [M] bool
         self.nearest: torch.Tensor | None = None  # [M] long

@@ -318,7 +318,7 @@ class TestLoadColmap:
             match="cameras.bin: camera 7 uses the OPENCV model with non-zero "
             "distortion.*colmap image_undistorter",
         ):
-            load_colmap(tmp_path)
+            load_colmap(tmp_path, undistort=False)  # the default undistorts: test_formats_undistort.py
         with pytest.raises(ProxycodecError, match="no COLMAP model"):
             load_colmap(tmp_path / "images")
         with pytest.raises(ProxycodecError, match="not a dataset"):
@@ -611,7 +611,7 @@ class TestRealColmap:
             match="cameras.bin: camera \\d+ uses the SIMPLE_RADIAL model with "
             "non-zero distortion.*undistort.*colmap image_undistorter",
         ):
-            load_colmap(root)
+            load_colmap(root, undistort=False)  # by default it is undistorted: tests/test_formats_undistort.py
         m = read_colmap_model(root / "sparse" / "0")
         assert len(m.cameras) == 71 and {c.model for c in m.cameras.values()} == {"SIMPLE_RADIAL"}
         assert {(c.width, c.height) for c in m.cameras.values()} == {(720, 1280)}
