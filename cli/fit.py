@@ -47,6 +47,18 @@ def _no_undistort_option(fn):
               help="Resolution embedding of the anchor features.")
 @click.option("--fixed-res", is_flag=True, help="Ablation: train at 100% only (no random resolution).")
 @click.option("--no-proxies", is_flag=True, help="Ablation: Scaffold-GS only (no proxy anchors / predictor).")
+@click.option("--recon-loss", type=click.Choice(["mse+cos", "mse", "l1"]), default="mse+cos", show_default=True,
+              help="Ablation: L_recon of the leaf predictor (supplement Table 6).")
+@click.option("--lambda-recon-fixed", type=float, default=None,
+              help="Ablation: constant lambda_recon (the paper's fixed 0.1 or 0.01) instead of 0.1 then 0.01 from "
+                   "2/3 of the run (supplement Table 10).")
+@click.option("--predictor", "predictor_kind", type=click.Choice(["residual", "proxy-leaf-mlp"]), default="residual",
+              show_default=True, help="Ablation: leaf predictor; proxy-leaf-mlp is the supplement's Proxy&Leaf (MLP) "
+                                      "baseline (Table 5), fit/eval only (encode refits a residual predictor).")
+@click.option("--gate-kappa", type=float, default=4.0, show_default=True,
+              help="Coverage gate slope kappa (training and rendering; stored with the decoder).")
+@click.option("--gate-eta", type=float, default=0.25, show_default=True,
+              help="Coverage gate threshold eta in pixels^2 (training and rendering; stored with the decoder).")
 @click.option("--voxel-size", type=float, default=0.0, show_default=True,
               help="Anchor voxel size; <= 0: scene extent / 128.")
 @click.option("--init-points", type=int, default=None,
@@ -66,9 +78,9 @@ def _no_undistort_option(fn):
 @click.option("--sh-degree", type=click.IntRange(0, 3), default=1, show_default=True,
               help="With --explicit: spherical-harmonics degree of the Gaussians' colours.")
 @user_errors
-def fit(dataset, out, iters, time_budget, max_width, seed, no_gate, embedding, fixed_res, no_proxies, voxel_size,
-        init_points, images, test_every, resume, checkpoint_every, keep_checkpoint, backend, explicit,
-        sh_degree) -> None:
+def fit(dataset, out, iters, time_budget, max_width, seed, no_gate, embedding, fixed_res, no_proxies, recon_loss,
+        lambda_recon_fixed, predictor_kind, gate_kappa, gate_eta, voxel_size, init_points, images, test_every, resume,
+        checkpoint_every, keep_checkpoint, backend, explicit, sh_degree) -> None:
     """Train an anchor scene on DATASET (Blender or COLMAP folder, detected by its files) and write OUT
     (with --explicit: the plain 3DGS baseline, an INRIA PLY)."""
     from ..train import FitConfig
@@ -84,7 +96,9 @@ def fit(dataset, out, iters, time_budget, max_width, seed, no_gate, embedding, f
         init_points = 5_000
     cfg = FitConfig(iters=iters, time_budget=time_budget, seed=seed, max_width=max_width, gate=not no_gate,
                     embedding=embedding, fixed_res=fixed_res, proxies=not no_proxies, voxel_size=voxel_size,
-                    init_points=init_points, checkpoint_every=checkpoint_every, backend=backend)
+                    init_points=init_points, checkpoint_every=checkpoint_every, backend=backend,
+                    recon_loss=recon_loss, lambda_recon_fixed=lambda_recon_fixed, predictor=predictor_kind,
+                    gate_kappa=gate_kappa, gate_eta=gate_eta)
     data = _load_data(dataset, max_width, images, test_every)
     res = run_fit(data, out, cfg, dataset_root=str(Path(dataset).resolve()), resume=resume,
                   keep_checkpoint=keep_checkpoint)
@@ -146,8 +160,11 @@ def _load_any(path):
 @click.option("--test-every", type=int, default=8, show_default=True)
 @_no_undistort_option
 @click.option("--backend", default="auto", show_default=True, type=click.Choice(["auto", "reference", "cpu", "cuda"]))
+@click.option("--gate", "gate_mode", type=click.Choice(["model", "on", "off"]), default="model", show_default=True,
+              help="Coverage gate when rendering: the model's own setting, or forced on (post-hoc gating of a "
+                   "model trained with --no-gate, with its stored kappa/eta) or off.")
 @user_errors
-def eval_cmd(scene, dataset, out_dir, max_width, res, n_views, images, test_every, backend) -> None:
+def eval_cmd(scene, dataset, out_dir, max_width, res, n_views, images, test_every, backend, gate_mode) -> None:
     """Evaluate SCENE on DATASET's test views at many resolutions: PSNR/SSIM/time/Gaussians, JSON + markdown +
     plot + side-by-side crops."""
     from ..errors import ProxycodecError
@@ -155,7 +172,10 @@ def eval_cmd(scene, dataset, out_dir, max_width, res, n_views, images, test_ever
     from ..explicit import ExplicitModel
     from .main import parse_resolutions
 
+    from ..bench import apply_gate_mode
+
     model = _load_any(scene)
+    gate_used = apply_gate_mode(model, gate_mode)
     meta = model.meta
     fit_meta = meta.get("fit", {}) if isinstance(meta.get("fit"), dict) else {}
     if max_width is None:
@@ -174,6 +194,7 @@ def eval_cmd(scene, dataset, out_dir, max_width, res, n_views, images, test_ever
                    keep_images=crop_keys, log=lambda s: click.echo(s, err=True))
     rep.summary["fit"] = {k: fit_meta.get(k) for k in ("iterations", "seconds", "stage")} if fit_meta else None
     rep.summary["max_width"] = max_width
+    rep.summary["gate"] = {"mode": gate_mode, **gate_used} if gate_used is not None else None
     out = Path(out_dir) if out_dir else Path(scene).with_name(Path(scene).stem + "_eval")
     paths = write_report(rep, out, crop_keys)
     click.echo(report_markdown(rep))

@@ -125,3 +125,4 @@ def main() -> None:
 
 # Command modules register themselves on ``cli``.
 from . import commands  # noqa: E402,F401
+from . import bench  # noqa: E402,F401

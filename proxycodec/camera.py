@@ -11,7 +11,6 @@ import math
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-import torch
 
 from .errors import ProxycodecError
 
@@ -110,8 +109,12 @@ class Camera:
         sx, sy = w / self.width, h / self.height
         return replace(self, fx=self.fx * sx, fy=self.fy * sy, cx=self.cx * sx, cy=self.cy * sy, width=w, height=h)
 
-    def torch_params(self, device=None, dtype=torch.float32) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """(R [3,3], t [3], center [3]) as tensors."""
+    def torch_params(self, device=None, dtype=None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(R [3,3], t [3], center [3]) as tensors (float32 unless ``dtype`` says otherwise)."""
+        import torch  # here, not at the top: cameras are also used by the torch-free decode path
+
+        if dtype is None:
+            dtype = torch.float32
         R = torch.as_tensor(self.rotation, dtype=dtype, device=device)
         t = torch.as_tensor(self.translation, dtype=dtype, device=device)
         c = torch.as_tensor(self.center, dtype=dtype, device=device)
@@ -180,3 +183,16 @@ def orbit_cameras(center, radius: float, n: int, *, elevation_deg: float = 25.0,
         cams.append(Camera.look_at(eye, center, up, fov_x_deg=fov_x_deg, width=width, height=height,
                                    name=f"orbit_{i:03d}"))
     return cams
+
+
+def default_cameras(cameras, bounds, n: int = 8, width: int = 256, height: int = 192) -> list[Camera]:
+    """``cameras`` when there are any, else ``n`` orbit cameras around the box ``bounds`` ([2, 3]: min, max).
+
+    What ``proxycodec decode`` renders when no cameras are given (``codec.default_cameras``, ``proxycodec.lite``).
+    """
+    if cameras:
+        return list(cameras)
+    b = np.asarray(bounds, dtype=np.float64)
+    c = b.mean(0)
+    r = max(float(np.linalg.norm(b[1] - b[0])) / 2.0, 1e-3)
+    return orbit_cameras(c, 2.2 * r, n, elevation_deg=30.0, fov_x_deg=50.0, width=width, height=height)

@@ -23,7 +23,8 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
-from .camera import Camera, orbit_cameras
+from .camera import Camera, orbit_cameras  # noqa: F401
+from .camera import default_cameras as camera_defaults
 from .decoder import DecoderConfig, GaussianDecoder
 from .errors import ProxycodecError
 from .formats.container import (
@@ -35,17 +36,17 @@ from .proxy import (
     select_proxies, torch_threads, train_predictor,
 )
 from .scene import AnchorScene
+# The decoder's reading of the sections is torch-free and shared with proxycodec.lite (SCENE_KIND, FLOAT_BITS,
+# _dequantize... are defined there and used here under the same names).
+from .sections import (  # noqa: F401
+    FLOAT_BITS, MAX_ANCHORS, PREDICT_CHUNK, QSCALE, SCENE_FORMAT, SCENE_KIND, SUPPORTED_SCENE_FORMATS, _dequantize,
+    _grid_to_xyz, _section, _weights_from_sections, guarded, read_scene_container, scene_extras, stored_anchors,
+)
 
 __all__ = ["EncodeConfig", "EncodeReport", "CompressedScene", "encode", "decode", "load", "stats", "render",
            "SCENE_KIND", "SCENE_FORMAT"]
 
-SCENE_KIND = "proxycodec.scene"
-SCENE_FORMAT = 1  # version of the scene sections (inside container format 1)
-SUPPORTED_SCENE_FORMATS = (1,)
-FLOAT_BITS = 32  # "bits" value meaning: store float32, no quantisation
 GRID_SUBDIVISIONS = 4  # positions may sit on voxel / 2^j for j <= this (Scaffold-GS grows anchors on finer grids)
-PREDICT_CHUNK = 65536  # leaves per predictor batch (fixed: the same batches in encoder and decoder)
-MAX_ANCHORS = 1 << 28
 
 Progress = Callable[[str], None]
 
@@ -66,9 +67,14 @@ class EncodeConfig:
     predictor_blocks: int = 2
     predictor_iters: int = 2000
     predictor_lr: float = 2e-3
+    leaf_sample: float = 0.2  # fraction of the leaves per predictor iteration [S Fig. 12]
     zstd_level: int = 19
     seed: int = 0
     use_fitted: bool = True  # a stage-2 predictor + proxy mask in the weights sidecar (proxycodec fit) is used as is
+    # Offsets of neural Gaussians that are never drawn (opacity <= dead_threshold from every sampled viewpoint and
+    # resolution) are stored as the level nearest 0: the decoder never places them, so their value is free.
+    drop_dead_offsets: bool = True
+    dead_threshold: float = -0.02
 
     def check(self) -> "EncodeConfig":
         if not (0.0 < self.proxy_ratio <= 1.0):
@@ -87,6 +93,8 @@ class EncodeConfig:
             raise ProxycodecError(f"zstd level must be 1..22, got {self.zstd_level}")
         if self.predictor_iters < 0:
             raise ProxycodecError("predictor iterations must be >= 0")
+        if not (0.0 < self.leaf_sample <= 1.0):
+            raise ProxycodecError(f"leaf sample fraction must be in (0, 1], got {self.leaf_sample}")
         return self
 
 
@@ -139,34 +147,6 @@ def _quantize(x: np.ndarray, bits: int) -> tuple[np.ndarray, dict]:
     return q, {"bits": int(bits), "offset": [float(v) for v in lo], "scale": [float(v) for v in scale]}
 
 
-def _dequantize(q: np.ndarray, params: dict, name: str, err) -> np.ndarray:
-    """Inverse of ``_quantize``: offset + q * scale in float64, rounded once to float32."""
-    bits = params["bits"]
-    if bits == FLOAT_BITS:
-        if q.dtype != np.float32:
-            raise err(f"section {name!r} must be float32")
-        if not np.all(np.isfinite(q)):
-            raise err(f"section {name!r} contains NaN or Inf")
-        return np.array(q, dtype=np.float32)
-    if not (isinstance(bits, int) and 1 <= bits <= 16):
-        raise err(f"section {name!r}: bad bit depth {bits!r}")
-    want = np.uint8 if bits <= 8 else np.uint16
-    if q.dtype != want:
-        raise err(f"section {name!r} has dtype {q.dtype}, expected {np.dtype(want)} for {bits} bits")
-    off = np.asarray(params["offset"], dtype=np.float64)
-    sc = np.asarray(params["scale"], dtype=np.float64)
-    if off.shape != (q.shape[0],) or sc.shape != (q.shape[0],):
-        raise err(f"section {name!r}: quantisation parameters do not match its {q.shape[0]} channels")
-    if not (np.all(np.isfinite(off)) and np.all(np.isfinite(sc)) and np.all(sc >= 0)):
-        raise err(f"section {name!r}: quantisation parameters are not finite")
-    if int(q.max(initial=0)) > (1 << bits) - 1:
-        raise err(f"section {name!r}: value exceeds {bits} bits")
-    x = (off[:, None] + q.astype(np.float64) * sc[:, None]).astype(np.float32)
-    if not np.all(np.isfinite(x)):
-        raise err(f"section {name!r} dequantises to NaN or Inf")
-    return x
-
-
 # ---------------------------------------------------------------------------------------------- positions
 def _grid_positions(pos: np.ndarray, voxel: float) -> tuple[np.ndarray, dict] | None:
     """Integer grid coordinates reproducing ``pos`` (float32) exactly, or None when the anchors are off-grid.
@@ -185,12 +165,6 @@ def _grid_positions(pos: np.ndarray, voxel: float) -> tuple[np.ndarray, dict] | 
             if np.array_equal(_grid_to_xyz(ii, step, rule), pos):
                 return ii, {"mode": "grid", "step": step, "rule": rule}
     return None
-
-
-def _grid_to_xyz(ii: np.ndarray, step: float, rule: str) -> np.ndarray:
-    if rule == "f64":
-        return (ii.astype(np.float64) * step).astype(np.float32)
-    return ii.astype(np.float32) * np.float32(step)
 
 
 def _morton_order(keys: np.ndarray, *ties: np.ndarray) -> np.ndarray:
@@ -215,9 +189,6 @@ def _small_int(a: np.ndarray) -> np.ndarray:
 
 
 # ---------------------------------------------------------------------------------------------- helpers
-QSCALE = ".qscale"  # suffix of the per-row scale section of an int8 ("q8") weight matrix
-
-
 def _weights_to_sections(prefix: str, arrays: dict[str, np.ndarray], dtype: str) -> dict[str, np.ndarray]:
     """f32; f16 (where representable); or q8: matrices as int8 with a float32 scale per output row
     (symmetric, ``w = q * scale``), vectors (biases) as f16."""
@@ -383,7 +354,8 @@ def encode(
         torch.manual_seed(cfg.seed)
         pred = ResidualPredictor(pcfg)
     nearest = nearest_proxy(pos_sorted, mask)
-    tcfg = TrainConfig(iters=cfg.predictor_iters, lr=cfg.predictor_lr, lr_final=cfg.predictor_lr / 10, seed=cfg.seed)
+    tcfg = TrainConfig(iters=cfg.predictor_iters, lr=cfg.predictor_lr, lr_final=cfg.predictor_lr / 10,
+                       sample_frac=cfg.leaf_sample, seed=cfg.seed)
     t_train = time.perf_counter()
 
     def on_iter(it, total, loss, elapsed):
@@ -433,6 +405,13 @@ def encode(
     }
     # 6. the decoded model, through the decoder's own path (so report.model == decode(out), bit for bit)
     decoded = _model_from_sections(meta, sections, err)
+    if cfg.drop_dead_offsets and not cfg.predict_offsets:
+        dead = ~_live_slots(decoded, cfg.dead_threshold)  # [M, K] in stored (Morton) order
+        if dead.any():
+            sections["anchors/offsets"] = _zero_dead_offsets(q_off, qp_off, dead)
+            decoded = _model_from_sections(meta, sections, err)
+        meta["offsets_dead"] = {"slots": int(dead.sum()), "of": int(dead.size), "threshold": cfg.dead_threshold}
+        say(f"{int(dead.sum())} of {dead.size} neural Gaussians are never drawn: their offsets are stored as 0")
     file_bytes = write_container(out, meta, sections, level=cfg.zstd_level)
     _, _, infos, _ = read_header(out)
     say(f"wrote {out}: {file_bytes:,} B" + (f" ({source_bytes / file_bytes:.1f}x smaller than PLY + weights)"
@@ -442,6 +421,52 @@ def encode(
         sections=[s.to_json() for s in infos], source_bytes=source_bytes,
         seconds={"total": time.perf_counter() - t_start, "predictor": t_train}, training=training,
         model=decoded, meta=meta)
+
+
+def _sample_viewpoints(model: SceneModel, n_dirs: int = 128) -> np.ndarray:
+    """Camera centres to judge which neural Gaussians can ever be drawn: the model's cameras, plus a Fibonacci
+    sphere of ``n_dirs`` directions around the anchors' centre at 0.5, 1 and 2 times the median camera distance."""
+    pos = model.scene.positions.detach().double().numpy()
+    center = 0.5 * (pos.min(0) + pos.max(0))
+    cams = np.array([c.center for c in (model.cameras or [])], dtype=np.float64).reshape(-1, 3)
+    if len(cams):
+        r = float(np.median(np.linalg.norm(cams - center, axis=1)))
+    else:
+        r = 2.0 * float(np.linalg.norm(pos.max(0) - pos.min(0))) + 1e-6
+    i = np.arange(n_dirs) + 0.5
+    z = 1.0 - 2.0 * i / n_dirs
+    phi = math.pi * (1.0 + 5.0 ** 0.5) * i
+    d = np.stack([np.sqrt(1 - z * z) * np.cos(phi), np.sqrt(1 - z * z) * np.sin(phi), z], 1)
+    sphere = np.concatenate([center + f * r * d for f in (0.5, 1.0, 2.0)])
+    return np.concatenate([cams, sphere])
+
+
+def _live_slots(model: SceneModel, threshold: float) -> np.ndarray:
+    """[M, K] bool: neural Gaussians whose opacity exceeds ``threshold`` from some sampled viewpoint and xi."""
+    from .decoder import live_slots
+
+    lo, hi = model.decoder.config.film_xi_range
+    xis = [1.0] if model.decoder.config.embedding == "none" else list(np.geomspace(lo, hi, 5))
+    s = model.scene
+    vp = torch.from_numpy(_sample_viewpoints(model)).to(s.positions.dtype)
+    return live_slots(model.decoder, s.positions.detach(), s.features.detach(), vp, xis, threshold).numpy()
+
+
+def _zero_dead_offsets(q_off: np.ndarray, qp: dict, dead: np.ndarray) -> np.ndarray:
+    """Stored offsets [3K, M] with the dead slots' three channels set to each channel's level nearest 0."""
+    q = q_off.copy()
+    if qp.get("bits") == FLOAT_BITS:
+        zero = np.zeros(q.shape[0], q.dtype)
+    else:
+        off = np.asarray(qp["offset"], np.float64)
+        scale = np.asarray(qp["scale"], np.float64)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            zero = np.where(scale > 0, np.round(-off / np.where(scale > 0, scale, 1)), 0)
+        zero = np.clip(zero, 0, (1 << int(qp["bits"])) - 1).astype(q.dtype)
+    M, K = dead.shape
+    rows = np.repeat(dead.T, 3, axis=0)  # [3K, M]: channel k*3 + c belongs to slot k
+    q[rows] = np.broadcast_to(zero[:, None], q.shape)[rows]
+    return q
 
 
 def _spread(items: list, n: int) -> list:
@@ -489,13 +514,7 @@ class CompressedScene:
 def load(path: str | os.PathLike) -> CompressedScene:
     """Read and verify a scene container without regenerating anything (raises ``ContainerError``)."""
     path = Path(path)
-    c = read_container(path)
-    if c.meta.get("kind") != SCENE_KIND:
-        raise ContainerError(f"not a compressed scene (kind {c.meta.get('kind')!r})", path)
-    fmt = c.meta.get("scene_format")
-    if fmt not in SUPPORTED_SCENE_FORMATS:
-        raise ContainerError(f"scene format {fmt!r} is not supported by this proxycodec (supports "
-                             f"{', '.join(map(str, SUPPORTED_SCENE_FORMATS))}); upgrade proxycodec", path)
+    c = read_scene_container(path)
     return CompressedScene(path, c.meta, dict(c.arrays), c.sections, c.file_size)
 
 
@@ -504,110 +523,17 @@ def decode(path: str | os.PathLike) -> SceneModel:
     return load(path).to_model()
 
 
-def _section(sections, name, err, shape=None, kinds="f") -> np.ndarray:
-    if name not in sections:
-        raise err(f"missing section {name!r}")
-    a = sections[name]
-    if shape is not None and tuple(a.shape) != tuple(shape):
-        raise err(f"section {name!r} has shape {tuple(a.shape)}, expected {tuple(shape)}")
-    if a.dtype.kind not in kinds:
-        raise err(f"section {name!r} has unexpected dtype {a.dtype}")
-    return a
-
-
-def _weights_from_sections(prefix, sections, err) -> dict[str, np.ndarray]:
-    out = {}
-    for k, v in sections.items():
-        if not k.startswith(prefix + "/") or k.endswith(QSCALE):
-            continue
-        if v.dtype == np.int8:
-            scale = sections.get(k + QSCALE)
-            if scale is None or scale.dtype != np.float32 or v.ndim != 2 or scale.shape != (v.shape[0],):
-                raise err(f"section {k!r}: int8 weights need a float32 per-row scale section")
-            if not np.all(np.isfinite(scale)):
-                raise err(f"section {k!r}: weight scales are not finite")
-            out[k[len(prefix) + 1:]] = (v.astype(np.float32) * scale[:, None]).astype(np.float32)
-        elif v.dtype in (np.float16, np.float32):
-            out[k[len(prefix) + 1:]] = v.astype(np.float32)
-        else:
-            raise err(f"section {k!r}: weights must be float16, float32 or int8 (with scales)")
-    return out
-
-
 def _model_from_sections(meta: dict, sections: dict[str, np.ndarray], err) -> SceneModel:
-    try:
-        return _model_from_sections_unchecked(meta, sections, err)
-    except (KeyError, TypeError, ValueError, IndexError, AttributeError, OverflowError) as e:
-        if isinstance(e, ProxycodecError):
-            if isinstance(e, ContainerError) or not isinstance(err(""), ContainerError):
-                raise
-            raise err(e.reason) from None
-        raise err(f"bad scene metadata ({type(e).__name__}: {e})") from None
+    return guarded(_model_from_sections_unchecked, err, meta, sections, err)
 
 
 def _model_from_sections_unchecked(meta: dict, sections: dict[str, np.ndarray], err) -> SceneModel:
-    a = meta["anchors"]
-    M, P, Fd, K = (int(a[k]) for k in ("count", "proxies", "feat_dim", "n_offsets"))
-    if not (0 < M <= MAX_ANCHORS and 0 < P <= M and a["leaves"] == M - P and 0 < Fd <= 4096 and 0 < K <= 4096):
-        raise err(f"bad anchor counts {a}")
-    voxel = float(meta["voxel_size"])
-    if not (math.isfinite(voxel) and voxel > 0):
-        raise err(f"bad voxel size {voxel}")
-    # positions
-    pinfo = meta["positions"]
-    if pinfo["mode"] == "grid":
-        d = _section(sections, "anchors/grid", err, (3, M), "i").astype(np.int64)
-        rel = np.cumsum(d, axis=1).T
-        origin = np.asarray([int(v) for v in pinfo["origin"]], dtype=np.int64)
-        if origin.shape != (3,):
-            raise err("bad grid origin")
-        ii = rel + origin
-        if len(ii) and np.abs(ii).max() >= 2**31:
-            raise err("grid coordinates out of range")
-        step = float(pinfo["step"])
-        if not (math.isfinite(step) and step > 0) or pinfo["rule"] not in ("f64", "f32"):
-            raise err("bad grid step or rule")
-        pos = _grid_to_xyz(ii, step, pinfo["rule"])
-    elif pinfo["mode"] == "float32":
-        pos = np.ascontiguousarray(_section(sections, "anchors/xyz", err, (3, M)).T)
-        if pos.dtype != np.float32 or not np.all(np.isfinite(pos)):
-            raise err("section 'anchors/xyz' must hold finite float32 values")
-    else:
-        raise err(f"unknown position mode {pinfo['mode']!r}")
-    if not np.all(np.isfinite(pos)):
-        raise err("positions are not finite")
-    # split
-    bits = _section(sections, "anchors/proxy_mask", err, ((M + 7) // 8,), "u")
-    mask = np.unpackbits(bits, count=M, bitorder="little").astype(bool)
-    if int(mask.sum()) != P:
-        raise err(f"proxy mask marks {int(mask.sum())} proxies, metadata says {P}")
-    q = meta["quant"]
-    scal = _dequantize(_section(sections, "anchors/scalings", err, (6, M), "uf"), q["scalings"],
-                       "anchors/scalings", err).T
-    feats = np.zeros((M, Fd), dtype=np.float32)
-    feats[mask] = _dequantize(_section(sections, "proxy/features", err, (Fd, P), "uf"), q["features"],
-                              "proxy/features", err).T
-    offsets_mode = meta["offsets"]
-    if offsets_mode == "stored":
-        offs = _dequantize(_section(sections, "anchors/offsets", err, (3 * K, M), "uf"), q["offsets"],
-                           "anchors/offsets", err).T.reshape(M, K, 3)
-    elif offsets_mode == "predicted":
-        offs = np.zeros((M, K, 3), dtype=np.float32)
-        offs[mask] = _dequantize(_section(sections, "proxy/offsets", err, (3 * K, P), "uf"), q["offsets"],
-                                 "proxy/offsets", err).T.reshape(P, K, 3)
-    else:
-        raise err(f"unknown offsets mode {offsets_mode!r}")
-    # networks
-    dcfg = DecoderConfig.from_json(meta["decoder"])
-    pcfg = PredictorConfig.from_json(meta["predictor"])
-    if (dcfg.feat_dim, dcfg.n_offsets, pcfg.feat_dim, pcfg.n_offsets) != (Fd, K, Fd, K):
-        raise err("network configurations do not match the anchors' feature/offset sizes")
-    if pcfg.predict_offsets != (offsets_mode == "predicted"):
-        raise err("predictor configuration disagrees with the offsets mode")
+    a = stored_anchors(meta, sections, err)  # the stored arrays, dequantised, and the network configurations
+    pos, mask, dcfg, pcfg = a.positions, a.proxy_mask, a.decoder_config, a.predictor_config
     decoder = GaussianDecoder.from_arrays(dcfg, _weights_from_sections("decoder", sections, err)).eval()
     predictor = ResidualPredictor.from_arrays(pcfg, _weights_from_sections("predictor", sections, err)).eval()
     # leaves
-    pos_t, feat_t, off_t = torch.from_numpy(pos), torch.from_numpy(feats), torch.from_numpy(offs)
+    pos_t, feat_t, off_t = torch.from_numpy(pos), torch.from_numpy(a.features), torch.from_numpy(a.offsets)
     leaves = torch.from_numpy(np.flatnonzero(~mask))
     if leaves.numel():
         nearest = torch.from_numpy(nearest_proxy(pos, mask))
@@ -620,13 +546,8 @@ def _model_from_sections_unchecked(meta: dict, sections: dict[str, np.ndarray], 
                     off_t[lv] = o_pred
     if not (torch.isfinite(feat_t).all() and torch.isfinite(off_t).all()):
         raise err("regenerated leaves are not finite")
-    cams = [Camera.from_json(c) for c in meta.get("cameras", [])]
-    bg = tuple(float(x) for x in meta.get("background", (1.0, 1.0, 1.0)))
-    if len(bg) != 3:
-        raise err("background must have 3 components")
-    scene_meta = dict(meta.get("scene", {})) if isinstance(meta.get("scene", {}), dict) else {}
-    scene_meta["proxy_mask"] = mask  # which anchors were proxies (in the stored order)
-    scene = AnchorScene(pos_t, feat_t, off_t, torch.from_numpy(np.ascontiguousarray(scal)), voxel, scene_meta)
+    cams, bg, scene_meta = scene_extras(meta, mask, err)
+    scene = AnchorScene(pos_t, feat_t, off_t, torch.from_numpy(a.scalings), a.voxel_size, scene_meta)
     scene.validate()
     return SceneModel(scene, decoder, cams or None, bg)  # type: ignore[arg-type]
 
@@ -709,13 +630,10 @@ def _ply_stats(path: Path) -> dict:
 
 # ---------------------------------------------------------------------------------------------- rendering
 def default_cameras(model: SceneModel, n: int = 8, width: int = 256, height: int = 192) -> list[Camera]:
-    """The model's own cameras, else an orbit around the anchors' bounds."""
+    """The model's own cameras, else an orbit around the anchors' bounds (``camera.default_cameras``)."""
     if model.cameras:
         return list(model.cameras)
-    b = model.scene.bounds()
-    c = b.mean(0)
-    r = max(float(np.linalg.norm(b[1] - b[0])) / 2.0, 1e-3)
-    return orbit_cameras(c, 2.2 * r, n, elevation_deg=30.0, fov_x_deg=50.0, width=width, height=height)
+    return camera_defaults(None, model.scene.bounds(), n, width, height)
 
 
 def as_model(source) -> SceneModel:

@@ -12,8 +12,10 @@ color MLPs only run for anchors with at least one Gaussian of positive opacity.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -21,75 +23,8 @@ from torch import nn
 
 from .errors import ProxycodecError
 from .weights import load_state_arrays, state_arrays
-from .render.project import GateConfig
-
-EMBEDDINGS = ("film", "additive", "none")
-
-
-@dataclass(frozen=True)
-class DecoderConfig:
-    feat_dim: int = 32
-    n_offsets: int = 10
-    hidden: int = 32
-    embedding: str = "film"  # "film" | "additive" | "none"
-    film_hidden: int = 64
-    pe_pos_freqs: int = 4
-    pe_res_freqs: int = 4
-    scene_center: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    scene_radius: float = 1.0
-    #: The resolution band the embedding was trained on; outside it the embedding sees the nearest end of the band
-    #: instead of extrapolating (measured on lego: +1.2..2.6 dB at 2.5-7.5%, +0.4..2.5 dB at 120-150%).
-    film_xi_range: tuple[float, float] = (0.1, 1.0)
-    gate: GateConfig = field(default_factory=GateConfig)
-
-    def __post_init__(self) -> None:
-        if self.embedding not in EMBEDDINGS:
-            raise ProxycodecError(f"unknown resolution embedding {self.embedding!r}; choose from {EMBEDDINGS}")
-        if not (self.scene_radius > 0 and math.isfinite(self.scene_radius)):
-            raise ProxycodecError(f"scene radius must be positive, got {self.scene_radius}")
-        for k in ("feat_dim", "n_offsets", "hidden", "film_hidden"):
-            if int(getattr(self, k)) < 1 or int(getattr(self, k)) > 4096:
-                raise ProxycodecError(f"decoder {k} = {getattr(self, k)} is out of range")
-        # Frequencies beyond ~20 are meaningless in float32 (2^k pi x aliases); a hostile file must not make the
-        # embedding MLP's input (and its allocation) arbitrarily wide.
-        for k in ("pe_pos_freqs", "pe_res_freqs"):
-            if not 0 <= int(getattr(self, k)) <= 32:
-                raise ProxycodecError(f"decoder {k} = {getattr(self, k)} is out of range (0..32)")
-        if len(self.scene_center) != 3 or not all(math.isfinite(float(v)) for v in self.scene_center):
-            raise ProxycodecError(f"scene centre must be 3 finite numbers, got {self.scene_center!r}")
-        lo, hi = (float(v) for v in self.film_xi_range) if len(self.film_xi_range) == 2 else (math.nan, math.nan)
-        if not (0.025 <= lo <= hi <= 2.0):
-            raise ProxycodecError(f"film_xi_range must be [lo, hi] within [0.025, 2], got {self.film_xi_range!r}")
-
-    def to_json(self) -> dict:
-        d = asdict(self)
-        d["scene_center"] = list(self.scene_center)
-        d["gate"] = self.gate.to_json()
-        return d
-
-    @staticmethod
-    def from_json(d: dict) -> "DecoderConfig":
-        try:
-            if not isinstance(d, dict) or not isinstance(d.get("gate", {}), dict):
-                raise ProxycodecError("bad decoder configuration: expected a JSON object (with an object 'gate')")
-            d = dict(d)
-            gate = GateConfig.from_json(d.pop("gate", {}))
-            if not all(math.isfinite(v) for v in (gate.kappa, gate.eta)):
-                raise ProxycodecError("bad decoder configuration: gate kappa and eta must be finite")
-            known = {f for f in DecoderConfig.__dataclass_fields__ if f != "gate"}
-            kw = {k: v for k, v in d.items() if k in known}
-            for k in ("scene_center", "film_xi_range"):
-                if k in kw:
-                    kw[k] = tuple(float(x) for x in kw[k])
-            for k in ("feat_dim", "n_offsets", "hidden", "film_hidden", "pe_pos_freqs", "pe_res_freqs"):
-                if k in kw:
-                    kw[k] = int(kw[k])
-            return DecoderConfig(gate=gate, **kw)
-        except (TypeError, ValueError) as e:
-            if isinstance(e, ProxycodecError):
-                raise
-            raise ProxycodecError(f"bad decoder configuration: {e}") from e
-
+from .netconfig import EMBEDDINGS, DecoderConfig  # noqa: F401  (re-exported: defined torch-free)
+from .render.project import GateConfig  # noqa: F401
 
 @dataclass
 class NeuralGaussians:
@@ -200,6 +135,41 @@ class GaussianDecoder(nn.Module):
     @classmethod
     def from_arrays(cls, config: DecoderConfig, arrays: dict[str, np.ndarray]) -> "GaussianDecoder":
         return load_state_arrays(cls(config), arrays, "decoder")  # type: ignore[return-value]
+
+
+@torch.no_grad()
+def live_slots(
+    decoder: GaussianDecoder,
+    positions: torch.Tensor,  # [M, 3]
+    features: torch.Tensor,  # [M, F] as the renderer will see them (leaves predicted)
+    viewpoints: torch.Tensor,  # [V, 3] camera centres
+    xis: Sequence[float],
+    threshold: float = 0.0,
+    chunk: int = 64,
+) -> torch.Tensor:
+    """[M, K] bool: whether a neural Gaussian's opacity exceeds ``threshold`` from any viewpoint at any xi.
+
+    The opacity MLP sees the embedded feature (which depends on xi only), the unit view direction and the
+    distance; the first layer is split so that only its 4 view columns are recomputed per viewpoint.
+    """
+    M, K = positions.shape[0], decoder.config.n_offsets
+    live = torch.zeros(M, K, dtype=torch.bool)
+    if M == 0 or viewpoints.shape[0] == 0:
+        return live
+    lin1, lin2 = decoder.mlp_opacity[0], decoder.mlp_opacity[2]
+    F = features.shape[1]
+    w_f, w_v = lin1.weight[:, :F], lin1.weight[:, F:]  # [h, F], [h, 4]
+    pos = positions.to(lin1.weight.dtype)
+    for xi in xis:
+        base = decoder.embed(pos, features.to(pos.dtype), float(xi)) @ w_f.T + lin1.bias  # [M, h]
+        for v0 in range(0, viewpoints.shape[0], chunk):
+            vp = viewpoints[v0:v0 + chunk].to(pos.dtype)  # [c, 3]
+            view = pos[None] - vp[:, None]  # [c, M, 3]
+            dist = view.norm(dim=-1, keepdim=True)
+            x = torch.cat([view / dist.clamp_min(1e-12), dist], -1) @ w_v.T  # [c, M, h]
+            o = torch.tanh(torch.relu(base[None] + x) @ lin2.weight.T + lin2.bias)  # [c, M, K]
+            live |= (o > threshold).any(0)
+    return live
 
 
 def visible_anchors(positions: torch.Tensor, radius: torch.Tensor, camera, near: float = 0.01) -> torch.Tensor:

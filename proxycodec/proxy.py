@@ -8,7 +8,10 @@
 - ``ResidualPredictor``: [f_k (F), PE(log distance), PE(unit direction proxy->leaf)] -> encoder -> residual MLP blocks
   -> delta (F, plus 3K offset deltas when it also predicts offsets). Prediction = proxy value + delta. The head starts
   at zero, so an untrained predictor is exactly the proxy-copy baseline.
-- ``recon_loss``: L_recon = mean_i ||f~_i - f_i||^2 + 0.1 (1 - cos(f~_i, f_i)).
+- ``recon_loss``: L_recon = mean_i ||f~_i - f_i||^2 + 0.1 (1 - cos(f~_i, f_i)); ablation variants ``mse`` and ``l1``
+  (supplement Table 6).
+- ``ProxyLeafMLP``: the supplement's "Proxy&Leaf (MLP)" baseline (Table 5), for the ablation only (fit / eval; the
+  container stores residual predictors only).
 - ``train_predictor``: Adam on L_recon over 20% of the leaves drawn per iteration (stage-2's feature-only part).
 """
 
@@ -26,12 +29,15 @@ import torch.nn.functional as F
 from torch import nn
 
 from .decoder import positional_encoding
+from . import nearest as _nearest
 from .errors import ProxycodecError
+from .netconfig import PredictorConfig
 from .weights import load_state_arrays, state_arrays
 
 __all__ = [
     "default_cell_size", "select_proxies", "nearest_proxy", "PredictorConfig", "ResidualPredictor",
     "predictor_inputs", "recon_loss", "TrainConfig", "TrainResult", "train_predictor", "proxies_per_cell",
+    "RECON_LOSSES", "PREDICTOR_KINDS", "ProxyLeafConfig", "ProxyLeafMLP", "predictor_from_json",
 ]
 
 
@@ -93,103 +99,19 @@ def select_proxies(positions, cell_size: float, ratio: float = 0.3, seed: int = 
     return mask
 
 
-#: Below this many (leaf, proxy) pairs the nearest proxy is found by exhaustive search (no scipy import, which
-#: costs seconds in a fresh process); above it by a kd-tree. Both give identical results (same exact tie-breaking).
-BRUTE_FORCE_PAIRS = 2_000_000
+#: Below this many (leaf, proxy) pairs the nearest proxy is found by exhaustive search, above it by a kd-tree
+#: (``nearest.py``). Read at call time, so tests can lower it here.
+BRUTE_FORCE_PAIRS = _nearest.BRUTE_FORCE_PAIRS
 
 
 def nearest_proxy(positions, proxy_mask) -> np.ndarray:
-    """[M] int64: index (into ``positions``) of each anchor's nearest proxy; proxies map to themselves.
-
-    Distances are squared Euclidean, computed in float64 as ((a - b)^2).sum() on the given coordinates; ties go to
-    the smallest proxy index. Encoder and decoder call this on the same stored positions, so they always agree.
-    """
-    p = np.asarray(positions.detach().cpu() if isinstance(positions, torch.Tensor) else positions, dtype=np.float64)
-    mask = np.asarray(proxy_mask, dtype=bool)
-    M = len(p)
-    out = np.arange(M, dtype=np.int64)
-    pidx = np.flatnonzero(mask)
-    leaves = np.flatnonzero(~mask)
-    if len(leaves) == 0:
-        return out
-    if len(pidx) == 0:
-        raise ProxycodecError("no proxy anchors: every leaf needs a proxy")
-    pp = p[pidx]
-    if len(leaves) * len(pidx) <= BRUTE_FORCE_PAIRS:
-        rows = max(1, (8 << 20) // (len(pidx) * 3))  # ~8M elements per block
-        for s in range(0, len(leaves), rows):
-            lv = leaves[s:s + rows]
-            d2 = ((pp[None, :, :] - p[lv][:, None, :]) ** 2).sum(-1)  # [l, P]
-            out[lv] = pidx[np.argmin(d2, axis=1)]  # argmin: first (= smallest index) of the minima
-        return out
-    from scipy.spatial import cKDTree
-
-    tree = cKDTree(pp)
-    k = min(16, len(pidx))
-    _, cand = tree.query(p[leaves], k=k)
-    cand = np.sort(cand.reshape(len(leaves), k), axis=1)  # ascending proxy index
-    d2 = ((pp[cand] - p[leaves][:, None, :]) ** 2).sum(-1)  # [L, k], the same formula as above
-    best = pidx[cand[np.arange(len(leaves)), np.argmin(d2, axis=1)]]
-    # When even the k-th candidate ties with the best, more ties may exist beyond it: resolve those exhaustively.
-    for r in np.flatnonzero(d2.max(1) <= d2.min(1)):
-        d = ((pp - p[leaves[r]]) ** 2).sum(-1)
-        best[r] = pidx[np.argmin(d)]
-    out[leaves] = best
-    return out
+    """[M] int64: index (into ``positions``, an array or a tensor) of each anchor's nearest proxy; proxies map to
+    themselves. Ties go to the smallest proxy index (``nearest.nearest_proxy`` has the details)."""
+    p = positions.detach().cpu().numpy() if isinstance(positions, torch.Tensor) else positions
+    return _nearest.nearest_proxy(p, proxy_mask, BRUTE_FORCE_PAIRS)
 
 
 # ---------------------------------------------------------------------------------------------- predictor
-@dataclass(frozen=True)
-class PredictorConfig:
-    feat_dim: int = 32
-    n_offsets: int = 10
-    predict_offsets: bool = False  # also output 3K leaf-offset deltas
-    hidden: int = 64
-    n_blocks: int = 2
-    pe_dist_freqs: int = 4
-    pe_dir_freqs: int = 4
-    dist_ref: float = 1.0  # distances enter as log(d / dist_ref) / 4 (dist_ref = the voxel size)
-
-    def __post_init__(self) -> None:
-        for k in ("feat_dim", "n_offsets", "hidden"):
-            if not 1 <= int(getattr(self, k)) <= 4096:
-                raise ProxycodecError(f"predictor {k} = {getattr(self, k)} is out of range")
-        for k in ("n_blocks", "pe_dist_freqs", "pe_dir_freqs"):
-            if not 0 <= int(getattr(self, k)) <= 64:
-                raise ProxycodecError(f"predictor {k} = {getattr(self, k)} is out of range")
-        if not (math.isfinite(self.dist_ref) and 1e-30 < self.dist_ref < 1e30):  # float32-representable
-            raise ProxycodecError(f"predictor dist_ref must be positive, got {self.dist_ref}")
-
-    @property
-    def n_in(self) -> int:
-        return self.feat_dim + (1 + 2 * self.pe_dist_freqs) + 3 * (1 + 2 * self.pe_dir_freqs)
-
-    @property
-    def n_out(self) -> int:
-        return self.feat_dim + (3 * self.n_offsets if self.predict_offsets else 0)
-
-    def to_json(self) -> dict:
-        return asdict(self)
-
-    @staticmethod
-    def from_json(d: dict) -> "PredictorConfig":
-        try:
-            kw = {k: d[k] for k in PredictorConfig.__dataclass_fields__ if k in d}
-            for k in ("feat_dim", "n_offsets", "hidden", "n_blocks", "pe_dist_freqs", "pe_dir_freqs"):
-                if k in kw:
-                    if isinstance(kw[k], bool) or not isinstance(kw[k], int):
-                        raise ValueError(f"{k} must be an integer")
-            if "predict_offsets" in kw and not isinstance(kw["predict_offsets"], bool):
-                raise ValueError("predict_offsets must be a boolean")
-            if "dist_ref" in kw:
-                kw["dist_ref"] = float(kw["dist_ref"])
-            return PredictorConfig(**kw)
-        except (TypeError, ValueError, AttributeError) as e:
-            if isinstance(e, ProxycodecError):
-                raise
-            raise ProxycodecError(f"bad predictor configuration: {e}") from None
-
-
 class _Block(nn.Module):
     def __init__(self, h: int):
         super().__init__()
@@ -260,19 +182,151 @@ class ResidualPredictor(nn.Module):
         return load_state_arrays(cls(config), arrays, "predictor")  # type: ignore[return-value]
 
 
-def recon_loss(pred: torch.Tensor, target: torch.Tensor, cos_weight: float = 0.1) -> torch.Tensor:
+#: L_recon variants (supplement Table 6): ours, and the single-objective ablations.
+RECON_LOSSES = ("mse+cos", "mse", "l1")
+
+
+def recon_loss(pred: torch.Tensor, target: torch.Tensor, cos_weight: float = 0.1,
+               kind: str = "mse+cos") -> torch.Tensor:
     """L_recon = mean_i ||pred_i - target_i||^2 + cos_weight * mean_i (1 - cos(pred_i, target_i)).
 
     The squared error is summed over channels and averaged over rows, as METHOD.md section 3 writes it.
+    ``kind`` selects the ablation variants of supplement Table 6 (each "a single objective"): ``mse`` =
+    mean_i ||pred_i - target_i||^2, ``l1`` = mean_i ||pred_i - target_i||_1 (summed over channels as well).
     """
+    if kind not in RECON_LOSSES:
+        raise ProxycodecError(f"unknown reconstruction loss {kind!r}; choose from {', '.join(RECON_LOSSES)}")
     if pred.shape != target.shape or pred.ndim != 2:
         raise ProxycodecError(f"recon_loss expects two [N, F] tensors, got {tuple(pred.shape)} and "
                               f"{tuple(target.shape)}")
     if pred.shape[0] == 0:
         return pred.sum() * 0.0
+    if kind == "l1":
+        return (pred - target).abs().sum(1).mean()
     mse = ((pred - target) ** 2).sum(1).mean()
+    if kind == "mse":
+        return mse
     cos = F.cosine_similarity(pred, target, dim=1, eps=1e-8)
     return mse + cos_weight * (1.0 - cos).mean()
+
+
+# ---------------------------------------------------------------------------------------------- Proxy&Leaf MLP
+#: Leaf-feature predictors: ours, and the supplement's Proxy&Leaf (MLP) baseline (Table 5).
+PREDICTOR_KINDS = ("residual", "proxy-leaf-mlp")
+
+
+@dataclass(frozen=True)
+class ProxyLeafConfig:
+    """Configuration of :class:`ProxyLeafMLP` (JSON carries ``kind`` so a reader can tell it from a residual one)."""
+
+    feat_dim: int = 32
+    n_offsets: int = 10
+    hidden: int = 64
+    n_blocks: int = 2
+    pe_pos_freqs: int = 8  # finest period ~1.7 voxels at voxel = extent / 128
+    scene_center: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    scene_radius: float = 1.0
+    kind: str = "proxy-leaf-mlp"
+    predict_offsets: bool = False  # never: the ablation concerns features only
+
+    def __post_init__(self) -> None:
+        for k in ("feat_dim", "n_offsets", "hidden"):
+            if not 1 <= int(getattr(self, k)) <= 4096:
+                raise ProxycodecError(f"predictor {k} = {getattr(self, k)} is out of range")
+        for k in ("n_blocks", "pe_pos_freqs"):
+            if not 0 <= int(getattr(self, k)) <= 64:
+                raise ProxycodecError(f"predictor {k} = {getattr(self, k)} is out of range")
+        if self.kind != "proxy-leaf-mlp" or self.predict_offsets:
+            raise ProxycodecError("a Proxy&Leaf MLP predicts features only")
+        if not (math.isfinite(self.scene_radius) and self.scene_radius > 0):
+            raise ProxycodecError(f"predictor scene_radius must be positive, got {self.scene_radius}")
+
+    @property
+    def n_token(self) -> int:
+        return self.feat_dim + 3 * (1 + 2 * self.pe_pos_freqs)
+
+    def to_json(self) -> dict:
+        d = asdict(self)
+        d["scene_center"] = [float(v) for v in self.scene_center]
+        return d
+
+    @staticmethod
+    def from_json(d: dict) -> "ProxyLeafConfig":
+        try:
+            kw = {k: d[k] for k in ProxyLeafConfig.__dataclass_fields__ if k in d}
+            if "scene_center" in kw:
+                kw["scene_center"] = tuple(float(v) for v in kw["scene_center"])
+            return ProxyLeafConfig(**kw)
+        except (TypeError, ValueError) as e:
+            if isinstance(e, ProxycodecError):
+                raise
+            raise ProxycodecError(f"bad predictor configuration: {e}") from None
+
+
+class ProxyLeafMLP(nn.Module):
+    """The supplement's "Proxy&Leaf (MLP)" (section 8.3, Table 5), set up like MAE: the reference proxy token
+    (unmasked: its feature and position) and the masked target leaf token (a learned mask token and the leaf's
+    position) are fed jointly to an MLP that outputs the leaf's feature directly, not a proxy -> leaf residual.
+
+    [D] Tokens carry NeRF-style positional encodings of the absolute positions, normalised by the scene's centre and
+    radius as the resolution embedding does (MAE's absolute position embeddings), with ``pe_pos_freqs`` = 8 so the
+    finest period is about two voxels; the MLP body is the residual predictor's (encoder, ``n_blocks`` residual
+    blocks of width ``hidden``), its head an ordinary linear layer. With an MLP the mask token is a learned constant
+    input (equivalent to a bias), kept for fidelity to the MAE setup. Same ``predict`` interface as
+    :class:`ResidualPredictor`, so stage 2 trains it with the same code.
+    """
+
+    def __init__(self, config: ProxyLeafConfig = ProxyLeafConfig()):
+        super().__init__()
+        self.config = config
+        h = config.hidden
+        self.mask_token = nn.Parameter(torch.randn(config.feat_dim) * 0.02)
+        self.encoder = nn.Sequential(nn.Linear(2 * config.n_token, h), nn.ReLU())
+        self.blocks = nn.ModuleList(_Block(h) for _ in range(config.n_blocks))
+        self.head = nn.Linear(h, config.feat_dim)
+
+    def _pe(self, p: torch.Tensor) -> torch.Tensor:
+        cfg = self.config
+        c = torch.as_tensor(cfg.scene_center, dtype=p.dtype, device=p.device)
+        return positional_encoding(((p - c) / cfg.scene_radius).clamp(-4.0, 4.0), cfg.pe_pos_freqs)
+
+    def geometry(self, leaf_positions: torch.Tensor, proxy_positions: torch.Tensor) -> torch.Tensor:
+        """[L, 2 x 3 (1 + 2 Lp)]: PE(proxy position), PE(leaf position)."""
+        return torch.cat([self._pe(proxy_positions), self._pe(leaf_positions)], -1)
+
+    def forward(self, proxy_features: torch.Tensor, geometry: torch.Tensor,
+                proxy_offsets: torch.Tensor | None = None) -> tuple[torch.Tensor, None]:
+        n_pe = geometry.shape[1] // 2
+        proxy_tok = torch.cat([proxy_features, geometry[:, :n_pe]], -1)
+        leaf_tok = torch.cat([self.mask_token.expand(proxy_features.shape[0], -1), geometry[:, n_pe:]], -1)
+        x = self.encoder(torch.cat([proxy_tok, leaf_tok], -1))
+        for b in self.blocks:
+            x = b(x)
+        return self.head(x), None
+
+    def predict(self, positions: torch.Tensor, features: torch.Tensor, nearest: torch.Tensor,
+                leaves: torch.Tensor, offsets: torch.Tensor | None = None):
+        k = nearest[leaves]
+        return self(features[k], self.geometry(positions[leaves], positions[k]))
+
+    def state_arrays(self) -> dict[str, np.ndarray]:
+        return state_arrays(self)
+
+    @classmethod
+    def from_arrays(cls, config: ProxyLeafConfig, arrays: dict[str, np.ndarray]) -> "ProxyLeafMLP":
+        return load_state_arrays(cls(config), arrays, "predictor")  # type: ignore[return-value]
+
+
+def predictor_from_json(d: dict, arrays: dict[str, np.ndarray] | None = None):
+    """A leaf predictor (residual or Proxy&Leaf MLP, told apart by ``kind``) from its JSON configuration, with its
+    weights when ``arrays`` is given (else freshly initialised)."""
+    if isinstance(d, dict) and d.get("kind", "residual") == "proxy-leaf-mlp":
+        cfg, cls = ProxyLeafConfig.from_json(d), ProxyLeafMLP
+    elif isinstance(d, dict) and d.get("kind", "residual") == "residual":
+        cfg, cls = PredictorConfig.from_json(d), ResidualPredictor
+    else:
+        raise ProxycodecError(f"unknown predictor kind {d.get('kind') if isinstance(d, dict) else d!r}")
+    return cls(cfg) if arrays is None else cls.from_arrays(cfg, arrays)
 
 
 # ---------------------------------------------------------------------------------------------- training
@@ -357,8 +411,11 @@ def train_predictor(
     config: TrainConfig = TrainConfig(),
     progress: ProgressFn | None = None,
     progress_every: int = 100,
+    recon: str = "mse+cos",
 ) -> TrainResult:
-    """Fit ``predictor`` (in place) to the scene's own leaves with Adam on L_recon, 20% of leaves per iteration."""
+    """Fit ``predictor`` (in place) to the scene's own leaves with Adam on L_recon, 20% of leaves per iteration.
+
+    ``recon``: the L_recon variant (``RECON_LOSSES``). ``predictor`` may also be a :class:`ProxyLeafMLP`."""
     t0 = time.perf_counter()
     cfg = predictor.config
     mask = torch.as_tensor(np.asarray(proxy_mask, dtype=bool))
@@ -370,7 +427,10 @@ def train_predictor(
     features = features.detach().float()
     offsets = None if offsets is None else offsets.detach().float()
     k = nearest[leaves]
-    geo = predictor_inputs(positions[leaves], positions[k], cfg.dist_ref, cfg.pe_dist_freqs, cfg.pe_dir_freqs)
+    if isinstance(predictor, ProxyLeafMLP):
+        geo = predictor.geometry(positions[leaves], positions[k])
+    else:
+        geo = predictor_inputs(positions[leaves], positions[k], cfg.dist_ref, cfg.pe_dist_freqs, cfg.pe_dir_freqs)
     f_in, f_tgt = features[k], features[leaves]
     o_in = offsets[k] if (cfg.predict_offsets and offsets is not None) else None
     o_tgt = offsets[leaves] if o_in is not None else None
@@ -380,7 +440,7 @@ def train_predictor(
     def loss_of(idx=None):
         sl = slice(None) if idx is None else idx
         fp, op = predictor(f_in[sl], geo[sl], None if o_in is None else o_in[sl])
-        loss = recon_loss(fp, f_tgt[sl])
+        loss = recon_loss(fp, f_tgt[sl], kind=recon)
         if op is not None:
             loss = loss + config.offset_weight * ((op - o_tgt[sl]) ** 2).sum((1, 2)).mean()
         return loss

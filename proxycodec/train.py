@@ -119,6 +119,9 @@ class FitConfig:
     stage2_start: float = 0.5  # = update_until: the anchor set is final from here on
     recon_switch: float = 2.0 / 3.0  # the paper's 20k of 30k
     lambda_recon: tuple[float, float] = (0.1, 0.01)
+    lambda_recon_fixed: float | None = None  # ablation (supplement Table 10): this constant instead of the schedule
+    recon_loss: str = "mse+cos"  # ablation (supplement Table 6): "mse+cos" | "mse" | "l1"
+    predictor: str = "residual"  # ablation (supplement Table 5): "residual" | "proxy-leaf-mlp" (fit/eval only)
     leaf_sample: float = 0.2
     proxy_ratio: float = 0.3
     proxy_cell: float = 0.0  # <= 0: proxy.default_cell_size (~10 anchors per occupied cell)
@@ -145,6 +148,19 @@ class FitConfig:
         DecoderConfig(embedding=self.embedding)  # validates the name
         if not (0 < self.proxy_ratio <= 1) or not (0 < self.leaf_sample <= 1):
             raise ProxycodecError("proxy ratio and leaf sample fraction must be in (0, 1]")
+        from .proxy import PREDICTOR_KINDS, RECON_LOSSES
+
+        if self.recon_loss not in RECON_LOSSES:
+            raise ProxycodecError(f"unknown reconstruction loss {self.recon_loss!r}; choose from "
+                                  f"{', '.join(RECON_LOSSES)}")
+        if self.predictor not in PREDICTOR_KINDS:
+            raise ProxycodecError(f"unknown predictor {self.predictor!r}; choose from {', '.join(PREDICTOR_KINDS)}")
+        if self.lambda_recon_fixed is not None and not (math.isfinite(self.lambda_recon_fixed)
+                                                        and self.lambda_recon_fixed >= 0):
+            raise ProxycodecError(f"fixed lambda_recon must be >= 0, got {self.lambda_recon_fixed}")
+        if not (math.isfinite(self.gate_kappa) and self.gate_kappa > 0 and math.isfinite(self.gate_eta)):
+            raise ProxycodecError(f"gate kappa must be positive and eta finite, got kappa {self.gate_kappa}, "
+                                  f"eta {self.gate_eta}")
 
     def to_json(self) -> dict:
         return {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(self).items()}
@@ -471,6 +487,8 @@ class Trainer:
         return lrs
 
     def lambda_recon(self, p: float) -> float:
+        if self.cfg.lambda_recon_fixed is not None:
+            return float(self.cfg.lambda_recon_fixed)
         return self.cfg.lambda_recon[0] if p < self.cfg.recon_switch else self.cfg.lambda_recon[1]
 
     # ------------------------------------------------------------------ one iteration
@@ -500,7 +518,7 @@ class Trainer:
         from .proxy import recon_loss
 
         pred_s, _ = self.predictor.predict(a.positions, a.features, self.nearest, self.leaves[sel])
-        return feats, recon_loss(pred_s, self.leaf_target[sel])
+        return feats, recon_loss(pred_s, self.leaf_target[sel], kind=self.cfg.recon_loss)
 
     def train_step(self) -> dict:
         c = self.cfg
@@ -678,21 +696,26 @@ class Trainer:
 
     # ------------------------------------------------------------------ stage 2
     def _predictor_config(self):
-        from .proxy import PredictorConfig
+        from .proxy import PredictorConfig, ProxyLeafConfig
 
+        if self.cfg.predictor == "proxy-leaf-mlp":
+            d = self.decoder.config
+            return ProxyLeafConfig(feat_dim=self.cfg.feat_dim, n_offsets=self.cfg.n_offsets,
+                                   hidden=self.cfg.predictor_hidden, n_blocks=self.cfg.predictor_blocks,
+                                   scene_center=d.scene_center, scene_radius=d.scene_radius)
         return PredictorConfig(feat_dim=self.cfg.feat_dim, n_offsets=self.cfg.n_offsets,
                                hidden=self.cfg.predictor_hidden, n_blocks=self.cfg.predictor_blocks,
                                dist_ref=self.anchors.voxel_size)
 
     def _setup_proxies(self, mask: np.ndarray) -> None:
-        from .proxy import ResidualPredictor, nearest_proxy
+        from .proxy import nearest_proxy, predictor_from_json
 
         a = self.anchors
         self.proxy_mask = torch.from_numpy(np.asarray(mask, dtype=bool))
         self.nearest = torch.from_numpy(nearest_proxy(a.positions, mask)).long()
         self.leaves = (~self.proxy_mask).nonzero().squeeze(1)
         if self.predictor is None:
-            self.predictor = ResidualPredictor(self._predictor_config())
+            self.predictor = predictor_from_json(self._predictor_config().to_json())
         for k, p in self.predictor.named_parameters():
             self.opt.add(f"predictor.{k}", p)
         self.stage = 2
@@ -717,7 +740,7 @@ class Trainer:
         if c.predictor_warmup > 0 and self.leaves.numel():
             res = train_predictor(self.predictor, a.positions, a.features.detach(), mask, self.nearest.numpy(),
                                   config=TrainConfig(iters=c.predictor_warmup, sample_frac=c.leaf_sample,
-                                                     seed=c.seed))
+                                                     seed=c.seed), recon=c.recon_loss)
             warm = f"; predictor warm-up L_recon {res.baseline_loss:.4f} -> {res.final_loss:.4f}"
         else:
             warm = ""
@@ -801,7 +824,7 @@ class Trainer:
 
     def load_checkpoint(self, path: str | os.PathLike) -> None:
         from .formats.container import read_container
-        from .proxy import PredictorConfig, ResidualPredictor
+        from .proxy import predictor_from_json
 
         ck = read_container(path)
         m = ck.meta
@@ -832,8 +855,8 @@ class Trainer:
             self.stage = int(m["stage"])
             self.predictor = None
             if self.stage >= 2:
-                self.predictor = ResidualPredictor.from_arrays(
-                    self._predictor_config() if "predictor" not in m else PredictorConfig.from_json(m["predictor"]),
+                self.predictor = predictor_from_json(
+                    self._predictor_config().to_json() if "predictor" not in m else m["predictor"],
                     {k[len("predictor/"):]: v for k, v in arr.items() if k.startswith("predictor/")})
                 self.leaf_target = torch.from_numpy(np.array(arr["leaf_target"]))
                 self._setup_proxies(np.asarray(arr["proxy_mask"], dtype=bool))
@@ -884,13 +907,19 @@ def _save_model(model: SceneModel, ply_path: Path, extra_meta: dict, extra_array
 
 
 def load_predictor(weights_path: str | os.PathLike):
-    """(predictor, proxy mask) stored by ``fit`` in a weights sidecar, or (None, None) when it has none."""
+    """(predictor, proxy mask) stored by ``fit`` in a weights sidecar, or (None, None) when it has none.
+
+    Also (None, None) for the Proxy&Leaf MLP ablation (``fit --predictor proxy-leaf-mlp``): the container stores
+    residual predictors only, so ``encode`` selects proxies and fits a residual predictor of its own for such a scene
+    (its PLY already holds the leaves' predicted features, which is what ``eval`` measures)."""
     from .formats.container import read_container
     from .proxy import PredictorConfig, ResidualPredictor
 
     c = read_container(weights_path)
     fit_meta = c.meta.get("fit", {})
     if "predictor" not in fit_meta:
+        return None, None
+    if isinstance(fit_meta["predictor"], dict) and fit_meta["predictor"].get("kind", "residual") != "residual":
         return None, None
     cfg = PredictorConfig.from_json(fit_meta["predictor"])
     pred = ResidualPredictor.from_arrays(cfg, {k[len("predictor/"):]: v for k, v in c.arrays.items()

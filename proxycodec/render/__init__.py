@@ -2,17 +2,17 @@
 
 Backends share one 2D interface (``Projected``): ``reference`` (pure torch, the oracle), ``cpu`` (numba kernels with
 analytic backward) and ``cuda`` (gsplat, when installed and a CUDA device is present). ``auto`` picks by device.
+
+Importing this package does not import torch (the functions do, when called): the numba kernels under it
+(``_raster_kernels``, ``_project_kernels``) also serve the torch-free decode path, ``proxycodec.lite``.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-import torch
-
 from ..errors import ProxycodecError
 from .project import GateConfig, Projected, project_gaussians
-from .reference import rasterize_reference
 
 BACKENDS = ("auto", "reference", "cpu", "cuda")
 
@@ -24,7 +24,17 @@ class RenderResult:
     projected: Projected
 
 
+def __getattr__(name: str):
+    if name == "rasterize_reference":  # imports torch: loaded on first use
+        from .reference import rasterize_reference
+
+        return rasterize_reference
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
 def available_backends() -> list[str]:
+    import torch
+
     out = ["reference"]
     try:
         from . import cpu  # noqa: F401
@@ -70,6 +80,8 @@ def rasterize(proj: Projected, background: torch.Tensor, backend: str = "auto") 
         from .cuda import rasterize_cuda
 
         return rasterize_cuda(*args)
+    from .reference import rasterize_reference
+
     return rasterize_reference(*args)
 
 
@@ -114,6 +126,8 @@ def render_gaussians(
     near: float = 0.01,
 ) -> RenderResult:
     """Render explicit 3D Gaussians seen by ``camera`` (at the camera's own resolution)."""
+    import torch
+
     bg = torch.as_tensor(background, dtype=means.dtype, device=means.device)
     proj = project(means, quats, scales, opacities, colors, camera, gate=gate, near=near, backend=backend)
     image, alpha = rasterize(proj, bg, backend)

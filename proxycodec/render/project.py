@@ -12,7 +12,9 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-import torch
+
+# torch is imported inside the functions: the constants and GateConfig here are shared with torch-free code
+# (the numba kernels, ``proxycodec.lite``), which must not pay for importing torch.
 
 #: 3DGS's low-pass dilation of the projected covariance (pixels^2).
 DILATION = 0.3
@@ -70,6 +72,8 @@ class Projected:
 
 def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
     """[N, 4] (w, x, y, z), any norm -> [N, 3, 3]. Zero quaternions map to the identity, with bounded gradients."""
+    import torch
+
     q = quats / torch.sqrt((quats * quats).sum(-1, keepdim=True) + QUAT_EPS**2)
     w, x, y, z = q.unbind(-1)
     R = torch.stack(
@@ -91,6 +95,8 @@ def covariance_3d(quats: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
 
 def coverage_gate(det_sigma2d: torch.Tensor, gate: GateConfig) -> torch.Tensor:
     """g(A) with A = pi sqrt(det Sigma2D); ``det_sigma2d`` is the det of the undilated projected covariance."""
+    import torch
+
     if not gate.enabled:
         return torch.ones_like(det_sigma2d)
     area = math.pi * torch.sqrt(det_sigma2d.clamp_min(0.0) + GATE_DET_FLOOR)
@@ -116,6 +122,8 @@ def project_gaussians(
     subtracted first (in float64 for the offset), not ``R p + t``: at coordinates of 1e5 in float32 the latter loses
     about 2 cm to cancellation, the former nothing beyond the inputs' own rounding.
     """
+    import torch
+
     dev, dt = means.device, means.dtype
     W, H = camera.width, camera.height
     fx, fy, cx, cy = camera.fx, camera.fy, camera.cx, camera.cy

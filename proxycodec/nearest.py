@@ -1,0 +1,52 @@
+"""Each anchor's nearest proxy (numpy, torch-free): shared by the encoder, the torch decoder and ``proxycodec.lite``."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .errors import ProxycodecError
+
+#: Below this many (leaf, proxy) pairs the nearest proxy is found by exhaustive search (no scipy import, which
+#: costs seconds in a fresh process); above it by a kd-tree. Both give identical results (same exact tie-breaking).
+BRUTE_FORCE_PAIRS = 2_000_000
+
+
+def nearest_proxy(positions, proxy_mask, brute_force_pairs: int = BRUTE_FORCE_PAIRS) -> np.ndarray:
+    """[M] int64: index (into ``positions``) of each anchor's nearest proxy; proxies map to themselves.
+
+    Distances are squared Euclidean, computed in float64 as ((a - b)^2).sum() on the given coordinates; ties go to
+    the smallest proxy index. Encoder and decoder call this on the same stored positions, so they always agree.
+    ``positions``: [M, 3] array-like (numpy; ``proxy.nearest_proxy`` also takes tensors).
+    """
+    p = np.asarray(positions, dtype=np.float64)
+    mask = np.asarray(proxy_mask, dtype=bool)
+    M = len(p)
+    out = np.arange(M, dtype=np.int64)
+    pidx = np.flatnonzero(mask)
+    leaves = np.flatnonzero(~mask)
+    if len(leaves) == 0:
+        return out
+    if len(pidx) == 0:
+        raise ProxycodecError("no proxy anchors: every leaf needs a proxy")
+    pp = p[pidx]
+    if len(leaves) * len(pidx) <= brute_force_pairs:
+        rows = max(1, (8 << 20) // (len(pidx) * 3))  # ~8M elements per block
+        for s in range(0, len(leaves), rows):
+            lv = leaves[s:s + rows]
+            d2 = ((pp[None, :, :] - p[lv][:, None, :]) ** 2).sum(-1)  # [l, P]
+            out[lv] = pidx[np.argmin(d2, axis=1)]  # argmin: first (= smallest index) of the minima
+        return out
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(pp)
+    k = min(16, len(pidx))
+    _, cand = tree.query(p[leaves], k=k)
+    cand = np.sort(cand.reshape(len(leaves), k), axis=1)  # ascending proxy index
+    d2 = ((pp[cand] - p[leaves][:, None, :]) ** 2).sum(-1)  # [L, k], the same formula as above
+    best = pidx[cand[np.arange(len(leaves)), np.argmin(d2, axis=1)]]
+    # When even the k-th candidate ties with the best, more ties may exist beyond it: resolve those exhaustively.
+    for r in np.flatnonzero(d2.max(1) <= d2.min(1)):
+        d = ((pp - p[leaves[r]]) ** 2).sum(-1)
+        best[r] = pidx[np.argmin(d)]
+    out[leaves] = best
+    return out

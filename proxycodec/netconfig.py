@@ -1,0 +1,131 @@
+"""The network configurations a scene container carries as JSON (decoder, residual predictor), torch-free.
+
+``decoder.py`` and ``proxy.py`` build their torch modules from these; the torch-free decode path
+(``proxycodec.lite``) reads and validates a container's networks with the same classes.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+
+from .errors import ProxycodecError
+from .render.project import GateConfig
+
+EMBEDDINGS = ("film", "additive", "none")
+
+
+@dataclass(frozen=True)
+class DecoderConfig:
+    feat_dim: int = 32
+    n_offsets: int = 10
+    hidden: int = 32
+    embedding: str = "film"  # "film" | "additive" | "none"
+    film_hidden: int = 64
+    pe_pos_freqs: int = 4
+    pe_res_freqs: int = 4
+    scene_center: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    scene_radius: float = 1.0
+    #: The resolution band the embedding was trained on; outside it the embedding sees the nearest end of the band
+    #: instead of extrapolating (measured on lego: +1.2..2.6 dB at 2.5-7.5%, +0.4..2.5 dB at 120-150%).
+    film_xi_range: tuple[float, float] = (0.1, 1.0)
+    gate: GateConfig = field(default_factory=GateConfig)
+
+    def __post_init__(self) -> None:
+        if self.embedding not in EMBEDDINGS:
+            raise ProxycodecError(f"unknown resolution embedding {self.embedding!r}; choose from {EMBEDDINGS}")
+        if not (self.scene_radius > 0 and math.isfinite(self.scene_radius)):
+            raise ProxycodecError(f"scene radius must be positive, got {self.scene_radius}")
+        for k in ("feat_dim", "n_offsets", "hidden", "film_hidden"):
+            if int(getattr(self, k)) < 1 or int(getattr(self, k)) > 4096:
+                raise ProxycodecError(f"decoder {k} = {getattr(self, k)} is out of range")
+        # Frequencies beyond ~20 are meaningless in float32 (2^k pi x aliases); a hostile file must not make the
+        # embedding MLP's input (and its allocation) arbitrarily wide.
+        for k in ("pe_pos_freqs", "pe_res_freqs"):
+            if not 0 <= int(getattr(self, k)) <= 32:
+                raise ProxycodecError(f"decoder {k} = {getattr(self, k)} is out of range (0..32)")
+        if len(self.scene_center) != 3 or not all(math.isfinite(float(v)) for v in self.scene_center):
+            raise ProxycodecError(f"scene centre must be 3 finite numbers, got {self.scene_center!r}")
+        lo, hi = (float(v) for v in self.film_xi_range) if len(self.film_xi_range) == 2 else (math.nan, math.nan)
+        if not (0.025 <= lo <= hi <= 2.0):
+            raise ProxycodecError(f"film_xi_range must be [lo, hi] within [0.025, 2], got {self.film_xi_range!r}")
+
+    def to_json(self) -> dict:
+        d = asdict(self)
+        d["scene_center"] = list(self.scene_center)
+        d["gate"] = self.gate.to_json()
+        return d
+
+    @staticmethod
+    def from_json(d: dict) -> "DecoderConfig":
+        try:
+            if not isinstance(d, dict) or not isinstance(d.get("gate", {}), dict):
+                raise ProxycodecError("bad decoder configuration: expected a JSON object (with an object 'gate')")
+            d = dict(d)
+            gate = GateConfig.from_json(d.pop("gate", {}))
+            if not all(math.isfinite(v) for v in (gate.kappa, gate.eta)):
+                raise ProxycodecError("bad decoder configuration: gate kappa and eta must be finite")
+            known = {f for f in DecoderConfig.__dataclass_fields__ if f != "gate"}
+            kw = {k: v for k, v in d.items() if k in known}
+            for k in ("scene_center", "film_xi_range"):
+                if k in kw:
+                    kw[k] = tuple(float(x) for x in kw[k])
+            for k in ("feat_dim", "n_offsets", "hidden", "film_hidden", "pe_pos_freqs", "pe_res_freqs"):
+                if k in kw:
+                    kw[k] = int(kw[k])
+            return DecoderConfig(gate=gate, **kw)
+        except (TypeError, ValueError) as e:
+            if isinstance(e, ProxycodecError):
+                raise
+            raise ProxycodecError(f"bad decoder configuration: {e}") from e
+
+
+@dataclass(frozen=True)
+class PredictorConfig:
+    feat_dim: int = 32
+    n_offsets: int = 10
+    predict_offsets: bool = False  # also output 3K leaf-offset deltas
+    hidden: int = 64
+    n_blocks: int = 2
+    pe_dist_freqs: int = 4
+    pe_dir_freqs: int = 4
+    dist_ref: float = 1.0  # distances enter as log(d / dist_ref) / 4 (dist_ref = the voxel size)
+
+    def __post_init__(self) -> None:
+        for k in ("feat_dim", "n_offsets", "hidden"):
+            if not 1 <= int(getattr(self, k)) <= 4096:
+                raise ProxycodecError(f"predictor {k} = {getattr(self, k)} is out of range")
+        for k in ("n_blocks", "pe_dist_freqs", "pe_dir_freqs"):
+            if not 0 <= int(getattr(self, k)) <= 64:
+                raise ProxycodecError(f"predictor {k} = {getattr(self, k)} is out of range")
+        if not (math.isfinite(self.dist_ref) and 1e-30 < self.dist_ref < 1e30):  # float32-representable
+            raise ProxycodecError(f"predictor dist_ref must be positive, got {self.dist_ref}")
+
+    @property
+    def n_in(self) -> int:
+        return self.feat_dim + (1 + 2 * self.pe_dist_freqs) + 3 * (1 + 2 * self.pe_dir_freqs)
+
+    @property
+    def n_out(self) -> int:
+        return self.feat_dim + (3 * self.n_offsets if self.predict_offsets else 0)
+
+    def to_json(self) -> dict:
+        return asdict(self)
+
+    @staticmethod
+    def from_json(d: dict) -> "PredictorConfig":
+        try:
+            kw = {k: d[k] for k in PredictorConfig.__dataclass_fields__ if k in d}
+            for k in ("feat_dim", "n_offsets", "hidden", "n_blocks", "pe_dist_freqs", "pe_dir_freqs"):
+                if k in kw:
+                    if isinstance(kw[k], bool) or not isinstance(kw[k], int):
+                        raise ValueError(f"{k} must be an integer")
+            if "predict_offsets" in kw and not isinstance(kw["predict_offsets"], bool):
+                raise ValueError("predict_offsets must be a boolean")
+            if "dist_ref" in kw:
+                kw["dist_ref"] = float(kw["dist_ref"])
+            return PredictorConfig(**kw)
+        except (TypeError, ValueError, AttributeError) as e:
+            if isinstance(e, ProxycodecError):
+                raise
+            raise ProxycodecError(f"bad predictor configuration: {e}") from None
