@@ -113,18 +113,31 @@ def load_cameras(spec: str):
               type=click.Choice(["auto", "reference", "cpu", "cuda"]), help="Compositing backend.")
 @user_errors
 def decode(container, res, cameras, out_dir, views, no_render, ply, ply_res, ply_view, backend) -> None:
-    """Decode a container (leaves regenerated) and render it at any resolution; optionally export a 3DGS PLY."""
-    from .. import codec
+    """Decode a container (leaves regenerated) and render it at any resolution; optionally export a 3DGS PLY.
+
+    Rendering on the CPU without --ply never imports torch (``proxycodec.lite``: numpy + the numba kernels, the
+    same results); --ply, --backend reference|cuda and containers it does not cover take the torch path."""
     from ..camera import check_xi
 
     resolutions = parse_resolutions(res)
     check_xi(ply_res)
     t0 = time.perf_counter()
-    model = codec.decode(container)
-    _stderr(f"decoded {model.scene.num_anchors} anchors in {time.perf_counter() - t0:.2f} s")
-    cams = load_cameras(cameras) if cameras else codec.default_cameras(model)
+    lite = _decode_lite(container) if backend in ("auto", "cpu") and not ply else None
+    if lite is not None:
+        from ..lite import default_cameras
+
+        model, n_anchors = lite, lite.num_anchors
+    else:
+        from .. import codec
+
+        model = codec.decode(container)
+        default_cameras, n_anchors = codec.default_cameras, model.scene.num_anchors
+    _stderr(f"decoded {n_anchors} anchors in {time.perf_counter() - t0:.2f} s")
+    cams = load_cameras(cameras) if cameras else default_cameras(model)
     model.cameras = cams
     if ply:
+        from .. import codec
+
         if not 0 <= ply_view < len(cams):
             raise ProxycodecError(f"--ply-view {ply_view} does not exist ({len(cams)} cameras)")
         n = codec.write_gaussian_ply(ply, codec.export_gaussians(model, cams[ply_view], ply_res))
@@ -134,6 +147,19 @@ def decode(container, res, cameras, out_dir, views, no_render, ply, ply_res, ply
         out = Path(out_dir) if out_dir else Path(container).with_suffix("").with_name(
             Path(container).stem + "_renders")
         render_views(model, resolutions, out, list(views) or None, backend)
+
+
+def _decode_lite(container):
+    """The container decoded by the torch-free path, or None where that path does not apply (no numba; a leaf
+    predictor it does not implement): the caller then takes the torch path. Malformed files raise as there."""
+    try:
+        from .. import lite
+    except ImportError:  # numba missing: the torch path renders with the reference backend
+        return None
+    try:
+        return lite.decode(container)
+    except lite.Unsupported:
+        return None
 
 
 @cli.command()

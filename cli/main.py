@@ -89,12 +89,14 @@ def render(scene: str, res: str, out_dir: str, views: tuple[int, ...], backend: 
 
 
 def render_views(model, resolutions, out_dir: Path, views, backend: str, prefix: str = "") -> list[dict]:
+    """Render and write PNGs. ``model``: a ``SceneModel`` or a ``lite.LiteScene`` (torch-free: numpy images)."""
     from PIL import Image
 
-    from ..model import image_to_uint8
-    from ..sample import sample_cameras
+    cams = model.cameras
+    if not cams:
+        from ..sample import sample_cameras
 
-    cams = model.cameras or sample_cameras()
+        cams = sample_cameras()
     idx = views if views is not None else list(range(len(cams)))
     for i in idx:
         if not 0 <= i < len(cams):
@@ -111,12 +113,21 @@ def render_views(model, resolutions, out_dir: Path, views, backend: str, prefix:
             from ..fileio import atomic_write
 
             with atomic_write(path) as fh:
-                Image.fromarray(image_to_uint8(r.image)).save(fh, format="PNG")
+                Image.fromarray(_image_to_uint8(r.image)).save(fh, format="PNG")
             rows.append({"view": i, "xi": xi, "width": w, "height": h, "gaussians": r.projected.count,
-                         "anchors_visible": int(r.visible_anchor_index.numel()), "seconds": dt, "path": str(path)})
+                         "anchors_visible": len(r.visible_anchor_index), "seconds": dt, "path": str(path)})
             click.echo(f"view {i:3d}  xi {xi:5.3f}  {w:4d}x{h:<4d}  {r.projected.count:7d} Gaussians  "
                        f"{dt * 1000:7.1f} ms  -> {path}")
     return rows
+
+
+def _image_to_uint8(image):
+    """A rendered image (a torch tensor, or a numpy array from the torch-free path) -> [H, W, C] uint8."""
+    if type(image).__module__ == "numpy":  # no torch import for the torch-free path
+        from ..lite import image_to_uint8
+    else:
+        from ..model import image_to_uint8
+    return image_to_uint8(image)
 
 
 def main() -> None:

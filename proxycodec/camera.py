@@ -9,10 +9,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from .errors import ProxycodecError
+
+if TYPE_CHECKING:
+    import torch
 
 #: The range of resolution ratios every renderer accepts (issue: "xi in [0.025, 2.0] at least").
 XI_MIN = 0.025

@@ -25,7 +25,7 @@ import torch
 
 from .camera import Camera, orbit_cameras  # noqa: F401
 from .camera import default_cameras as camera_defaults
-from .decoder import DecoderConfig, GaussianDecoder
+from .decoder import DecoderConfig, GaussianDecoder  # noqa: F401
 from .errors import ProxycodecError
 from .formats.container import (
     MAGIC, ContainerError, SectionInfo, read_container, read_header, write_container,

@@ -21,7 +21,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from .errors import ProxycodecError
+from .errors import ProxycodecError  # noqa: F401
 from .weights import load_state_arrays, state_arrays
 from .netconfig import EMBEDDINGS, DecoderConfig  # noqa: F401  (re-exported: defined torch-free)
 from .render.project import GateConfig  # noqa: F401

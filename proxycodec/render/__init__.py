@@ -10,9 +10,13 @@ Importing this package does not import torch (the functions do, when called): th
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 from ..errors import ProxycodecError
 from .project import GateConfig, Projected, project_gaussians
+
+if TYPE_CHECKING:
+    import torch
 
 BACKENDS = ("auto", "reference", "cpu", "cuda")
 

@@ -10,8 +10,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    import torch
 
 # torch is imported inside the functions: the constants and GateConfig here are shared with torch-free code
 # (the numba kernels, ``proxycodec.lite``), which must not pay for importing torch.

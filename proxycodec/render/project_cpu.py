@@ -28,7 +28,19 @@ import torch
 # The kernels and their numpy driver live in a torch-free module (the torch-free decode path calls them directly);
 # their names are re-exported here, where the tests reach for them.
 from ._project_kernels import (  # noqa: F401
-    _DD, _DETU, _DRAW, _NK, _NOUT, _NW, SMALL_WORK, _backward, _forward, _fwd_one, _gather, _isfinite, constants,
+    _DD,
+    _DETU,
+    _DRAW,
+    _NK,
+    _NOUT,
+    _NW,
+    SMALL_WORK,
+    _backward,
+    _forward,
+    _fwd_one,
+    _gather,
+    _isfinite,
+    constants,
     project_forward,
 )
 from ._project_kernels import n_chunks as _n_chunks
