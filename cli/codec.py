@@ -34,8 +34,8 @@ def _stderr(msg: str) -> None:
               help="Default cameras kept in the container (evenly spaced).")
 @click.option("--predict-offsets/--store-offsets", default=False, show_default=True,
               help="Predict leaf offsets too instead of storing them.")
-@click.option("--keep-dead-offsets", is_flag=True,
-              help="Store the offsets of neural Gaussians that are never drawn (default: stored as 0).")
+@click.option("--drop-dead-offsets/--keep-dead-offsets", default=False, show_default=True,
+              help="Store the offsets of neural Gaussians that are never drawn as 0 (-1.5% bytes, ~9x encode time).")
 @click.option("--predictor-iters", default=2000, show_default=True, type=int)
 @click.option("--zstd-level", default=19, show_default=True, type=int)
 @click.option("--seed", default=0, show_default=True, type=int)
@@ -44,7 +44,7 @@ def _stderr(msg: str) -> None:
 @click.option("--json", "as_json", is_flag=True, help="Print the encode report as JSON on stdout.")
 @user_errors
 def encode(scene, out, weights, proxy_ratio, cell_size, feature_bits, offset_bits, scaling_bits, weights_dtype,
-           predict_offsets, max_cameras, keep_dead_offsets, predictor_iters, zstd_level, seed, refit_predictor,
+           predict_offsets, max_cameras, drop_dead_offsets, predictor_iters, zstd_level, seed, refit_predictor,
            as_json) -> None:
     """Compress an anchor scene (Scaffold-GS PLY + weights sidecar) to a proxy-anchor container.
 
@@ -58,7 +58,7 @@ def encode(scene, out, weights, proxy_ratio, cell_size, feature_bits, offset_bit
     r = codec.encode(source, out, proxy_ratio=proxy_ratio, cell_size=cell_size, feature_bits=feature_bits,
                      offset_bits=offset_bits, scaling_bits=scaling_bits, weights_dtype=weights_dtype,
                      predict_offsets=predict_offsets, max_cameras=max_cameras, predictor_iters=predictor_iters, zstd_level=zstd_level,
-                     seed=seed, use_fitted=not refit_predictor, drop_dead_offsets=not keep_dead_offsets,
+                     seed=seed, use_fitted=not refit_predictor, drop_dead_offsets=drop_dead_offsets,
                      progress=_stderr)
     if as_json:
         click.echo(json.dumps(r.to_json(), indent=2))

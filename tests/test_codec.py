@@ -97,7 +97,7 @@ class TestExactness:
             k = np.rint((d.astype(np.float64) - off) / np.where(sc > 0, sc, 1))
             # d is exactly float32(offset + k * scale), and within half a step of the original
             assert np.array_equal(d, (off + k * sc).astype(np.float32))
-            if name == "offsets":  # never-drawn Gaussians keep the level nearest 0 instead of their offset
+            if name == "offsets" and "offsets_dead" in meta:  # never-drawn Gaussians: the level nearest 0
                 live = np.repeat(codec._live_slots(dec, report.meta["offsets_dead"]["threshold"]), 3, axis=1)
                 zero = np.clip(np.rint(-off / np.where(sc > 0, sc, 1)), 0, 255)
                 assert np.array_equal(k[~live], np.broadcast_to(zero, k.shape)[~live])
@@ -106,12 +106,14 @@ class TestExactness:
             assert np.all(np.abs(d - o) <= sc / 2 + 1e-6)
 
     def test_never_drawn_gaussians_lose_their_offsets_and_nothing_else(self, encoded, tmp_path):
-        model, path, report = encoded
+        model, keep_path, keep = encoded
+        assert "offsets_dead" not in keep.meta  # opt-in
+        report = codec.encode(model, tmp_path / "drop.pxc", drop_dead_offsets=True, **FAST)
         dead = report.meta["offsets_dead"]
         assert 0 < dead["slots"] < dead["of"] == model.scene.num_anchors * 10
-        keep = codec.encode(model, tmp_path / "keep.pxc", drop_dead_offsets=False, **FAST)
-        assert "offsets_dead" not in keep.meta and keep.file_bytes > report.file_bytes
-        a, b = codec.decode(path), keep.model
+        assert keep.file_bytes > report.file_bytes
+        self.test_positions_exact_and_stored_arrays_on_their_quantisation_lattice((model, report.path, report))
+        a, b = codec.decode(report.path), keep.model
         assert not np.array_equal(a.scene.offsets.numpy(), b.scene.offsets.numpy())
         for cam in model.cameras:  # the cameras the liveness was judged from: identical images
             for xi in (0.1, 0.5, 1.0, 2.0):
