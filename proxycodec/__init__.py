@@ -13,6 +13,14 @@ The heavy modules (torch) load on first use, so ``import proxycodec`` and ``prox
 
 __version__ = "0.1.0"
 
+import os as _os
+
+# torch and numba (threading layer "omp") share GNU OpenMP, whose idle threads spin 300k iterations before they
+# sleep. On a 2-core machine with anything else running, spinning threads steal the core a worker needs: a D-SSIM
+# forward+backward at 400 px took 1264 ms with 2 threads instead of 119 ms with a 1000-iteration spin (SPEC.md 8).
+# Only a default: a value the user set wins, and it must be set before torch starts its thread pool.
+_os.environ.setdefault("GOMP_SPINCOUNT", "1000")
+
 from .errors import ProxycodecError  # noqa: E402
 
 _LAZY = {"encode": "codec", "decode": "codec", "load": "codec", "render": "codec", "stats": "codec"}
