@@ -14,7 +14,8 @@ from .main import cli, user_errors
               help="Results folder [default: SCENE's name + '_bench'].")
 @click.option("--quick", is_flag=True, help="2-3 settings per sweep and 2 test views (a smoke run).")
 @click.option("--views", type=int, default=None, help="Test views evaluated per point [default: 8; 2 with --quick].")
-@click.option("--max-width", type=int, default=None, help="100% reference width [default: the one the scene was fit at].")
+@click.option("--max-width", type=int, default=None,
+              help="100% reference width [default: the one the scene was fit at].")
 @click.option("--test-every", type=int, default=8, show_default=True, help="COLMAP: every N-th image is a test view.")
 @click.option("--sweeps", default=None,
               help="Comma-separated subset of proxy_ratio, leaf_sample, bits, zstd_level, predictor_blocks "
@@ -22,9 +23,13 @@ from .main import cli, user_errors
 @click.option("--in-process", is_flag=True,
               help="Run every step in this process (faster start; peak RSS is then the whole run's, not per step).")
 @click.option("--fresh", is_flag=True, help="Ignore the results of an earlier run in the folder (default: resume).")
+@click.option("--predictor-iters", type=int, default=None,
+              help="Encode-time predictor iterations at every point [default: encode's default, 2000].")
+@click.option("--seed", type=int, default=0, show_default=True, help="Encode seed (proxy selection, predictor).")
 @click.option("--backend", default="auto", show_default=True, type=click.Choice(["auto", "reference", "cpu", "cuda"]))
 @user_errors
-def bench(scene, dataset, out_dir, quick, views, max_width, test_every, sweeps, in_process, fresh, backend) -> None:
+def bench(scene, dataset, out_dir, quick, views, max_width, test_every, sweeps, in_process, fresh, predictor_iters,
+          seed, backend) -> None:
     """Sweep the encode settings (proxy ratio, leaf sample fraction, quantisation bits, zstd level, predictor depth)
     on SCENE (an anchor PLY + weights, e.g. from `proxycodec fit`) and evaluate every container on DATASET's test
     views: bytes, PSNR/SSIM over ten resolutions, encode/decode/render times, peak RSS per step. Writes
@@ -40,7 +45,8 @@ def bench(scene, dataset, out_dir, quick, views, max_width, test_every, sweeps, 
     out = out_dir or str(Path(scene).with_name(Path(scene).stem + "_bench"))
     paths = run_bench(scene, dataset, out, quick=quick, views=views, max_width=max_width, test_every=test_every,
                       sweeps=[s.strip() for s in sweeps.split(",") if s.strip()] if sweeps else None,
-                      isolate=not in_process, fresh=fresh, backend=backend,
+                      isolate=not in_process, fresh=fresh, backend=backend, predictor_iters=predictor_iters,
+                      seed=seed,
                       log=lambda s: click.echo(s, err=True))
     click.echo(Path(paths["markdown"]).read_text())
     click.echo("wrote " + ", ".join(str(p) for p in paths.values()))

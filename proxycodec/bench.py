@@ -369,7 +369,7 @@ class Runner:
         else:
             try:
                 rec = {"status": "ok", "result": run_worker(kind, args), "rss_scope": "shared process"}
-            except (ProxycodecError, OSError, subprocess.SubprocessError) as e:
+            except Exception as e:  # noqa: BLE001 - as a failed subprocess would: record it, go on
                 rec = {"status": "error", "error": f"{type(e).__name__}: {e}"}
         rec.update(kind=kind, args=args, seconds=time.perf_counter() - t0,
                    finished=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()))
@@ -519,21 +519,24 @@ def encode_point(runner: Runner, scene: str, pid: str, source_ply: str | os.Path
 
 def run_encode_sweeps(runner: Runner, scene: str, source_ply: str | os.PathLike, ev: EvalSpec, *, quick: bool,
                       sweeps: Sequence[str] | None = None, fit: dict | None = None,
-                      evaluated: dict | None = None) -> list[dict]:
+                      evaluated: dict | None = None, common: dict | None = None) -> list[dict]:
     """The encode-side sweeps on one fitted scene (one point per distinct setting; ``sweeps`` on each point says
     which sweeps it belongs to). Also the as-fitted default (``proxycodec encode SCENE`` with no options: the
-    stage-2 proxies and predictor when the scene has them), marked ``default``."""
+    stage-2 proxies and predictor when the scene has them), marked ``default``. ``common``: encode knobs applied
+    to every point (e.g. ``predictor_iters``), not part of the point names."""
     evaluated = {} if evaluated is None else evaluated
+    common = dict(common or {})
     points: dict[str, dict] = {}
-    p = encode_point(runner, scene, "encode default", source_ply, {}, ev, fit=fit, evaluated=evaluated,
+    p = encode_point(runner, scene, "encode default", source_ply, common, ev, fit=fit, evaluated=evaluated,
                      group="default", default=True, sweeps={})
     points[p["id"]] = p
-    for name, label, knobs in encode_sweep_plan(quick, sweeps):
+    for order, (name, label, knobs) in enumerate(encode_sweep_plan(quick, sweeps)):
         pid = _knob_id(knobs)
         if pid not in points:
-            points[pid] = encode_point(runner, scene, pid, source_ply, knobs, ev, fit=fit, evaluated=evaluated,
-                                       group="encode sweep", default=False, sweeps={})
+            points[pid] = encode_point(runner, scene, pid, source_ply, {**knobs, **common}, ev, fit=fit,
+                                       evaluated=evaluated, group="encode sweep", default=False, sweeps={})
         points[pid]["sweeps"][name] = label
+        points[pid].setdefault("sweep_order", {})[name] = order
     return list(points.values())
 
 
@@ -582,9 +585,10 @@ def markdown_report(title: str, meta: dict, points: list[dict], extra_sections: 
         f"Machine: {mach.get('cpu_count')} CPUs ({mach.get('cpu_model', mach.get('processor', '?'))}), "
         f"{mach.get('memory_gb', '?')} GB; {mach.get('platform', '')}. Versions: "
         + ", ".join(f"{k} {v}" for k, v in ver.items()) + ".",
-        f"Seed {m.get('seed')}; load average at start {runs[-1].get('loadavg_start')}, at end "
-        f"{runs[-1].get('loadavg_end')}; this run's wall time {_f(runs[-1].get('wall_seconds'), '.0f')} s "
-        f"({len(runs)} run(s) of this folder, resumed steps reused).",
+        f"Seed {m.get('seed')}; load average (1, 5, 15 min) at the start {runs[0].get('loadavg_start')} and at "
+        f"the end {runs[-1].get('loadavg_end')}; wall time "
+        f"{_f(sum(r.get('wall_seconds') or 0.0 for r in runs), '.0f')} s over {len(runs)} run(s) of this folder "
+        "(a re-run reuses the steps already done; every step's own load averages are in the JSON).",
         "",
         "Quality: PSNR / SSIM averaged over the ten resolutions 10%..100% of the 100% reference on the first test "
         "views (count per scene below); render time = mean per view, after one warm-up render. Fit seconds are "
@@ -607,6 +611,7 @@ def markdown_report(title: str, meta: dict, points: list[dict], extra_sections: 
             for name, label in (p.get("sweeps") or {}).items():
                 sw.setdefault(name, []).append((label, p))
         for name, rows in sw.items():
+            rows.sort(key=lambda lp: (lp[1].get("sweep_order") or {}).get(name, -1))
             lines += [f"### Sweep: {name}", "", POINT_HEADER]
             lines += [point_row(p, f"{name} {label}" + (" (default)" if p["id"] == "encode default (refit)" else ""))
                       for label, p in rows] + [""]
@@ -663,6 +668,7 @@ def plot_report(points: list[dict], out_dir: Path) -> dict[str, Path]:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import matplotlib.ticker
 
     scenes = list(dict.fromkeys(p["scene"] for p in points))
     paths = {"psnr_vs_bytes": out_dir / "psnr_vs_bytes.png", "psnr_vs_time": out_dir / "psnr_vs_time.png",
@@ -689,6 +695,7 @@ def plot_report(points: list[dict], out_dir: Path) -> dict[str, Path]:
                 ax.annotate(p["id"], (p[xkey], p["psnr_avg"]), fontsize=6, xytext=(3, 3),
                             textcoords="offset points")
         ax.set_xscale("log")
+        ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
         ax.set_xlabel(xlabel)
         ax.set_ylabel("avg PSNR 10%..100% (dB)")
         h, lab = ax.get_legend_handles_labels()
@@ -743,7 +750,7 @@ def write_report(runner: Runner, title: str, points: list[dict], extra_sections:
 def run_bench(scene_ply: str, dataset: str, out_dir: str, *, quick: bool = False, views: int | None = None,
               max_width: int | None = None, test_every: int = 8, sweeps: Sequence[str] | None = None,
               isolate: bool = True, fresh: bool = False, seed: int = 0, backend: str = "auto",
-              log: Callable[[str], None] | None = None) -> dict[str, Path]:
+              predictor_iters: int | None = None, log: Callable[[str], None] | None = None) -> dict[str, Path]:
     """``proxycodec bench``: the encode-side sweeps on a user's fitted scene (anchor PLY + weights sidecar)."""
     from .formats.container import read_container
     from .model import weights_path_for
@@ -759,8 +766,11 @@ def run_bench(scene_ply: str, dataset: str, out_dir: str, *, quick: bool = False
     views = views if views is not None else (2 if quick else 8)
     name = Path(scene_ply).stem
     ev = EvalSpec(dataset, max_width, views, test_every, backend=backend)
+    common = {"seed": seed} if seed else {}
+    if predictor_iters is not None:
+        common["predictor_iters"] = int(predictor_iters)
     meta = {"kind": "proxycodec.bench", "seed": seed, "quick": quick, "machine": machine_info(),
-            "versions": versions(),
+            "versions": versions(), "encode_knobs_on_every_point": common,
             "scenes": {name: {"scene": scene_ply, "dataset": dataset, "reference width": max_width,
                               "test views evaluated": views, "fit seconds (from the weights file)":
                                   fit_meta.get("seconds")}}}
@@ -773,7 +783,7 @@ def run_bench(scene_ply: str, dataset: str, out_dir: str, *, quick: bool = False
     src_bytes = Path(scene_ply).stat().st_size + w.stat().st_size
     points = [make_point(name, "uncompressed (PLY + weights)", "anchor-ply", fit=fit_rec, ev=src_ev,
                          bytes_=src_bytes, group="uncompressed")]
-    points += run_encode_sweeps(runner, name, scene_ply, ev, quick=quick, sweeps=sweeps, fit=fit_rec)
+    points += run_encode_sweeps(runner, name, scene_ply, ev, quick=quick, sweeps=sweeps, fit=fit_rec, common=common)
     return write_report(runner, f"proxycodec bench: {name}", points, markdown_name="bench.md")
 
 

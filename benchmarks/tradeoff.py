@@ -1,0 +1,284 @@
+"""What accuracy costs in time and bytes (issue #7): one command for every table and plot.
+
+    python benchmarks/tradeoff.py                       # full: lego (400 px) + bonsai (800 px), <= 3 h on 2 cores
+    python benchmarks/tradeoff.py --quick               # CI smoke: lego at 160 px, tiny budgets, <= 20 min
+    python benchmarks/tradeoff.py --scenes lego --out benchmarks/results/tradeoff --budget-scale 0.5
+
+Per scene, in one run, each step in its own subprocess (``proxycodec.bench``: per-step peak RSS, results written as
+each step finishes, a re-run resumes):
+
+1. fit-budget sweep: ``fit`` under wall-time budgets (the largest is the *main* fit), each encoded with the default
+   settings (``proxycodec encode SCENE``: the stage-2 proxies and predictor as fitted) and evaluated;
+2. the main fit uncompressed (anchor PLY + weights);
+3. baselines at the main budget: plain Scaffold-GS (``fit --no-proxies --no-gate --embedding none --fixed-res``)
+   uncompressed, and plain 3DGS (``fit --explicit``) as an INRIA PLY and as SPZ (``npx @playcanvas/splat-transform``,
+   converted back to PLY to evaluate what the SPZ holds; skipped with the reason when npx cannot run it);
+4. encode-side sweeps on the main fit, one knob at a time around the defaults, predictor refitted at each point:
+   proxy ratio, leaf sample fraction per predictor iteration, quantisation bits, zstd level, predictor depth;
+5. the paper's ablations (lego) at a reduced budget (the smallest fit budget), each evaluated uncompressed (the PLY
+   holds the leaves' predicted features) against the default fit of the same budget, next to the paper's figure.
+
+Outputs in ``--out``: ``results.json`` (machine, versions, seed, load averages, every step and point), ``tradeoff.md``
+(tables), ``psnr_vs_bytes.png`` (Pareto front marked, default highlighted), ``psnr_vs_time.png``,
+``render_time_vs_resolution.png``; ``work/`` holds the fitted scenes and containers, ``logs/`` each step's stderr.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED = REPO.parent / "shared" / "data"
+SEED = 0
+
+# Full mode. Budgets are seconds of training; the last one is the main fit. Views: the first N test views.
+SCENES = {
+    "lego": {"dataset": SHARED / "nerf_synthetic" / "lego", "max_width": 400, "views": 8, "budgets": [120, 400, 900],
+             "test_every": 8},
+    "bonsai": {"dataset": SHARED / "mipnerf360" / "bonsai", "max_width": 800, "views": 4, "budgets": [300, 900],
+               "test_every": 8},
+}
+QUICK = {"lego": {"max_width": 160, "views": 2, "budgets": [20, 60]}}
+ABLATION_SCENES = ("lego",)
+
+# The paper's ablations: (name, FitConfig overrides, eval gate mode, paper figure, paper delta vs ours in dB on the
+# dataset named first, or None). NeRF-Synthetic figures first where the paper has them (lego is NeRF-Synthetic).
+ABLATIONS = [
+    ("coverage gate off (trained and rendered without)", {"gate": False}, "model",
+     "not reported in the sources we hold", None),
+    ("coverage gate post hoc (trained without, rendered with)", {"gate": False}, "on",
+     "[M]: post-hoc gating costs ~1.3 dB vs joint training (Mip-NeRF360)", -1.3),
+    ("resolution embedding additive", {"embedding": "additive"}, "model",
+     "[M] Mip-NeRF360 avg: additive 28.036 vs FiLM 28.183", 28.036 - 28.183),
+    ("resolution embedding none", {"embedding": "none"}, "model",
+     "[M] Mip-NeRF360 avg: none 27.199 vs FiLM 28.183", 27.199 - 28.183),
+    ("predictor Proxy&Leaf MLP", {"predictor": "proxy-leaf-mlp"}, "model",
+     "[S Table 5] T&T 23.276 vs 24.600; DeepBlending 29.606 vs 29.905", 23.276 - 24.600),
+    ("L_recon MSE", {"recon_loss": "mse"}, "model",
+     "[S Table 6] NeRF-Syn 31.184 vs 31.056; Mip360 28.009 vs 28.183", 31.184 - 31.056),
+    ("L_recon L1", {"recon_loss": "l1"}, "model",
+     "[S Table 6] NeRF-Syn 29.931 vs 31.056; Mip360 27.391 vs 28.183", 29.931 - 31.056),
+    ("lambda_recon fixed 0.1", {"lambda_recon_fixed": 0.1}, "model",
+     "[S Table 10] NeRF-Syn 31.007 vs 31.056; T&T 24.451 vs 24.600", 31.007 - 31.056),
+    ("lambda_recon fixed 0.01", {"lambda_recon_fixed": 0.01}, "model",
+     "[S Table 10] NeRF-Syn 31.062 vs 31.056; T&T 24.194 vs 24.600", 31.062 - 31.056),
+    ("gate kappa 4, eta 0.1", {"gate_eta": 0.1}, "model", "[S Table 11] NeRF-Syn 31.020 vs 31.056", 31.020 - 31.056),
+    ("gate kappa 4, eta 0.33", {"gate_eta": 0.33}, "model", "[S Table 11] NeRF-Syn 30.497 vs 31.056",
+     30.497 - 31.056),
+    ("gate kappa 4, eta 0.5", {"gate_eta": 0.5}, "model", "[S Table 11] NeRF-Syn 29.271 vs 31.056", 29.271 - 31.056),
+    ("gate kappa 5, eta 0.25", {"gate_kappa": 5.0}, "model", "[S Table 11] NeRF-Syn 31.002 vs 31.056",
+     31.002 - 31.056),
+]
+QUICK_ABLATIONS = ("coverage gate off (trained and rendered without)",
+                   "coverage gate post hoc (trained without, rendered with)", "L_recon MSE",
+                   "predictor Proxy&Leaf MLP")
+SCAFFOLD = {"proxies": False, "gate": False, "embedding": "none", "fixed_res": True}
+
+
+def fit_config(budget: float, seed: int, **overrides) -> dict:
+    return {"iters": None, "time_budget": float(budget), "seed": seed, "checkpoint_every": 120.0,
+            "log_every": 30.0, **overrides}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--quick", action="store_true", help="CI smoke: lego only, small reference, tiny budgets")
+    ap.add_argument("--scenes", default=None, help="comma-separated subset of lego,bonsai [default: both; quick: lego]")
+    ap.add_argument("--out", default=None, help="results folder [default: benchmarks/results/tradeoff(_quick)]")
+    ap.add_argument("--budget-scale", type=float, default=1.0, help="multiply every fit budget (trial runs)")
+    ap.add_argument("--views", type=int, default=None, help="test views per evaluation (overrides the per-scene value)")
+    ap.add_argument("--max-width", type=int, default=None, help="100%% reference width (overrides the per-scene value)")
+    ap.add_argument("--seed", type=int, default=SEED)
+    ap.add_argument("--no-ablations", action="store_true")
+    ap.add_argument("--no-spz", action="store_true", help="skip the SPZ conversion (recorded as skipped)")
+    ap.add_argument("--fresh", action="store_true", help="ignore the results of an earlier run in --out")
+    args = ap.parse_args(argv)
+
+    sys.path.insert(0, str(REPO))
+    from proxycodec import bench
+    from proxycodec.bench import EvalSpec, Runner, encode_point, eval_step, make_point, run_encode_sweeps
+
+    names = [s.strip() for s in args.scenes.split(",")] if args.scenes else (["lego"] if args.quick else list(SCENES))
+    for n in names:
+        if n not in SCENES or (args.quick and n not in QUICK):
+            ap.error(f"unknown scene {n!r} for this mode")
+    specs = {}
+    for n in names:
+        sp = dict(SCENES[n], **(QUICK.get(n, {}) if args.quick else {}))
+        sp["budgets"] = [round(b * args.budget_scale, 3) for b in sp["budgets"]]
+        if args.views:
+            sp["views"] = args.views
+        if args.max_width:
+            sp["max_width"] = args.max_width
+        if not Path(sp["dataset"]).is_dir():
+            ap.error(f"dataset for {n} not found: {sp['dataset']} (see ../shared/data/README.md)")
+        specs[n] = sp
+    ablations = [] if args.no_ablations else [a for a in ABLATIONS if not args.quick or a[0] in QUICK_ABLATIONS]
+    ab_scenes = [n for n in names if n in ABLATION_SCENES]
+    # A second seed of the ablation reference measures run-to-run noise (full mode only).
+    noise_seeds = [] if args.quick else [args.seed + 1]
+    est = sum(sum(sp["budgets"]) + 2 * sp["budgets"][-1] for sp in specs.values())
+    est += sum(specs[n]["budgets"][0] * (len({tuple(sorted(a[1].items())) for a in ablations}) + len(noise_seeds))
+               for n in ab_scenes)
+    out = Path(args.out) if args.out else REPO / "benchmarks" / "results" / ("tradeoff_quick" if args.quick
+                                                                             else "tradeoff")
+    meta = {"kind": "proxycodec.tradeoff", "quick": args.quick, "seed": args.seed, "machine": bench.machine_info(),
+            "versions": bench.versions(), "budget_scale": args.budget_scale,
+            "scenes": {n: {"dataset": str(sp["dataset"]), "reference width": sp["max_width"],
+                           "test views evaluated": sp["views"], "fit budgets (s)": sp["budgets"],
+                           "main fit budget (s)": sp["budgets"][-1]} for n, sp in specs.items()},
+            "ablation_budget_s": {n: specs[n]["budgets"][0] for n in ab_scenes},
+            "fit_seconds_planned": est}
+    runner = Runner(out, meta, fresh=args.fresh)
+    runner.log(f"trade-off benchmark -> {out}: scenes {names}, ~{est / 60:.0f} min of training planned "
+               f"(plus encodes and evaluations)")
+    t0 = time.time()
+    points: list[dict] = []
+    ablation_rows: list[dict] = []
+    for n, sp in specs.items():
+        ev = EvalSpec(str(sp["dataset"]), sp["max_width"], sp["views"], sp["test_every"])
+        data_args = {"dataset": str(sp["dataset"]), "max_width": sp["max_width"], "test_every": sp["test_every"]}
+        wd = runner.work / n
+        evaluated: dict = {}
+
+        def fit(tag, budget, seed=args.seed, **over):
+            ply = wd / f"fit_{tag}.ply"
+            rec = runner.step(f"fit:{n}/{tag}", "fit", {**data_args, "out": str(ply),
+                                                        "config": fit_config(budget, seed, **over)},
+                              outputs=[ply], timeout=3 * budget + 900)
+            return ply, rec
+
+        # 1. fit budgets (+ default encode); the last is the main fit, whose default encode is the sweeps' default
+        fits = {}
+        for b in sp["budgets"]:
+            fits[b] = fit(f"budget={b:g}", b)
+        main_b = sp["budgets"][-1]
+        main_ply, main_fit = fits[main_b]
+        for b in sp["budgets"][:-1]:
+            ply, rec = fits[b]
+            p = encode_point(runner, n, f"ours, fit {b:g} s, default encode", ply, {}, ev, fit=rec,
+                             evaluated={}, group="fit budget", default=False, sweeps={"fit_budget": f"{b:g} s"})
+            points.append(p)
+        # 2. the main fit uncompressed
+        e = eval_step(runner, f"eval:{n}/main uncompressed", main_ply, ev)
+        points.append(make_point(n, f"ours uncompressed (PLY + weights), fit {main_b:g} s", "anchor-ply",
+                                 fit=main_fit, ev=e, bytes_=_res_bytes(main_fit), group="uncompressed"))
+        # 3. baselines at the main budget
+        sc_ply, sc_fit = fit(f"scaffold budget={main_b:g}", main_b, **SCAFFOLD)
+        e = eval_step(runner, f"eval:{n}/scaffold", sc_ply, ev)
+        points.append(make_point(n, f"Scaffold-GS-style, uncompressed, fit {main_b:g} s", "anchor-ply", fit=sc_fit,
+                                 ev=e, bytes_=_res_bytes(sc_fit), group="baseline"))
+        gs_ply = wd / f"explicit_{main_b:g}.ply"
+        gs_fit = runner.step(f"fit:{n}/3dgs budget={main_b:g}", "explicit",
+                             {**data_args, "out": str(gs_ply),
+                              "config": {"iters": None, "time_budget": float(main_b), "seed": args.seed,
+                                         "log_every": 30.0}},
+                             outputs=[gs_ply], timeout=3 * main_b + 900)
+        e = eval_step(runner, f"eval:{n}/3dgs ply", gs_ply, ev)
+        points.append(make_point(n, f"3DGS (INRIA PLY), fit {main_b:g} s", "inria-ply", fit=gs_fit, ev=e,
+                                 bytes_=_res_bytes(gs_fit), group="baseline"))
+        spz, back = wd / f"explicit_{main_b:g}.spz", wd / f"explicit_{main_b:g}_from_spz.ply"
+        if args.no_spz:
+            conv = {"status": "skipped", "result": {"skipped": "--no-spz"}}
+        elif gs_fit.get("status") == "ok":
+            conv = runner.step(f"spz:{n}", "spz", {"ply": str(gs_ply), "out": str(spz), "back": str(back)},
+                               outputs=[spz, back], timeout=1800)
+        else:
+            conv = {"status": "skipped", "result": {"skipped": "no 3DGS PLY"}}
+        e = eval_step(runner, f"eval:{n}/3dgs spz", back, ev) if conv.get("status") == "ok" else None
+        points.append(make_point(n, f"3DGS -> SPZ (splat-transform), fit {main_b:g} s", "spz", fit=gs_fit,
+                                 enc=conv, ev=e, group="baseline"))
+        # 4. encode sweeps on the main fit (its as-fitted default encode is the scene's default point)
+        sw = run_encode_sweeps(runner, n, main_ply, ev, quick=args.quick, fit=main_fit, evaluated=evaluated)
+        for p in sw:
+            if p["id"] == "encode default":
+                p["id"] = f"ours, fit {main_b:g} s, default encode"
+                p["sweeps"]["fit_budget"] = f"{main_b:g} s"
+        points += sw
+        # 5. ablations at the smallest budget, evaluated uncompressed against the default fit of that budget
+        if n in ab_scenes and ablations:
+            ab_b = sp["budgets"][0]
+            ref_ply, ref_fit = fits[ab_b]
+            ref_ev = eval_step(runner, f"eval:{n}/ablation reference", ref_ply, ev)
+            ref = _res(ref_ev)
+            rows = [{"name": f"reference (defaults, seed {args.seed})", "psnr_avg": ref.get("psnr_avg"),
+                     "ssim_avg": ref.get("ssim_avg"), "psnr_10": ref.get("psnr_10"), "psnr_100": ref.get("psnr_100"),
+                     "iterations": _res(ref_fit).get("iterations"), "delta": 0.0}]
+            for s in noise_seeds:
+                ply, rec = fit(f"budget={ab_b:g} seed={s}", ab_b, seed=s)
+                r = _res(eval_step(runner, f"eval:{n}/ablation reference seed={s}", ply, ev))
+                rows.append(_ablation_row(f"reference (defaults, seed {s}): run-to-run noise", r, ref, rec, None,
+                                          "same settings, another seed", {}))
+                rows[-1]["noise_row"] = True
+            for name, over, gate, paper, paper_delta in ablations:
+                tag = "ablation " + ",".join(f"{k}={v}" for k, v in sorted(over.items()))
+                ply, rec = fit(f"{tag} budget={ab_b:g}", ab_b, **over)
+                r = _res(eval_step(runner, f"eval:{n}/{tag} gate={gate}", ply, ev, gate=gate))
+                rows.append(_ablation_row(name, r, ref, rec, paper_delta, paper, {**over, "eval_gate": gate}))
+            noise = [abs(r["delta"]) for r in rows if r.get("noise_row") and r.get("delta") is not None]
+            for r in rows:
+                r["scene"], r["budget_s"] = n, ab_b
+                if noise and r.get("delta") is not None and not r.get("noise_row") and r is not rows[0]:
+                    r["within_noise"] = abs(r["delta"]) <= max(noise)
+            ablation_rows += rows
+        runner.save({"points": points, "ablations": ablation_rows})  # partial results after each scene
+    md_ab = ablation_markdown(ablation_rows, meta)
+    paths = bench.write_report(runner, "Trade-off benchmark (issue #7)" + (" — quick" if args.quick else ""),
+                               points, extra_sections=md_ab, extra_json={"ablations": ablation_rows})
+    print(Path(paths["markdown"]).read_text())
+    print(f"done in {time.time() - t0:.0f} s; wrote " + ", ".join(str(p) for p in paths.values()))
+    return 0
+
+
+def _res(rec):
+    return (rec or {}).get("result", {}) if rec and rec.get("status") == "ok" else {}
+
+
+def _res_bytes(rec):
+    return _res(rec).get("bytes")
+
+
+def _ablation_row(name, r, ref, fit_rec, paper_delta, paper, settings) -> dict:
+    d = None if r.get("psnr_avg") is None or ref.get("psnr_avg") is None else r["psnr_avg"] - ref["psnr_avg"]
+    same = None
+    if d is not None and paper_delta is not None and paper_delta != 0:
+        same = (d > 0) == (paper_delta > 0)
+    return {"name": name, "settings": settings, "psnr_avg": r.get("psnr_avg"), "ssim_avg": r.get("ssim_avg"),
+            "psnr_10": r.get("psnr_10"), "psnr_100": r.get("psnr_100"), "iterations": _res(fit_rec).get("iterations"),
+            "delta": d, "paper": paper, "paper_delta": paper_delta, "same_direction_as_paper": same,
+            "error": fit_rec.get("error") if fit_rec and fit_rec.get("status") != "ok" else None}
+
+
+def ablation_markdown(rows: list[dict], meta: dict) -> list[str]:
+    if not rows:
+        return []
+    f = lambda x, s=".3f": "n/a" if x is None else format(x, s)  # noqa: E731
+    out = ["## Ablations (the paper's, on our data)", "",
+           "Each ablation is a fit at the reduced budget below with one setting changed, evaluated uncompressed "
+           "(anchor PLY + weights; the PLY holds the leaves' predicted features) on the same views as the "
+           "reference: the default fit of the same budget. Wall-time budgets on a shared machine: iterations differ "
+           "with the load (column `iters`); the reference's second seed shows the run-to-run noise. Paper deltas "
+           "are on other data and GPU-length training (30k iterations); 'same sign' compares directions only, and "
+           "says 'within noise' where |Δ| is no larger than the second seed's.", ""]
+    for scene in dict.fromkeys(r["scene"] for r in rows):
+        rs = [r for r in rows if r["scene"] == scene]
+        out += [f"### {scene}, {rs[0]['budget_s']:g} s per fit", "",
+                "| ablation | avg PSNR | Δ vs reference | PSNR 10% | PSNR 100% | avg SSIM | iters | paper | "
+                "paper Δ | same sign |", "|---|---:|---:|---:|---:|---:|---:|---|---:|:-:|"]
+        for r in rs:
+            same = {True: "yes", False: "**no**", None: ""}[r.get("same_direction_as_paper")]
+            if r.get("within_noise"):
+                same += " (within noise)"
+            name = r["name"] + (f" — {r['error']}" if r.get("error") else "")
+            out.append(f"| {name} | {f(r['psnr_avg'])} | {f(r['delta'], '+.3f')} | {f(r['psnr_10'])} | "
+                       f"{f(r['psnr_100'])} | {f(r['ssim_avg'], '.4f')} | {f(r['iterations'], 'd')} | "
+                       f"{r.get('paper', '')} | {f(r.get('paper_delta'), '+.3f')} | {same} |")
+        out.append("")
+    return out
+
+
+if __name__ == "__main__":
+    sys.exit(main())

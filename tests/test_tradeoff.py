@@ -1,0 +1,350 @@
+"""Issue #7: the ablation switches of ``fit`` / ``eval``, the Pareto front, and ``proxycodec bench`` end to end.
+
+Everything is tiny and synthetic: a Blender-format dataset rendered from part of the built-in sample scene at 24 px
+(6 training + 2 test views), fits of a few dozen iterations.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from click.testing import CliRunner
+from PIL import Image
+
+from proxycodec.camera import orbit_cameras
+from proxycodec.errors import ProxycodecError
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+SIZE = 24
+
+
+# ------------------------------------------------------------------------------------------------ fixtures
+def _tiny_scene():
+    from proxycodec.model import SceneModel
+    from proxycodec.sample import sample_model
+
+    m = sample_model()
+    s = m.scene
+    lo, hi = torch.tensor([0.15, -0.85, -0.05]), torch.tensor([0.95, -0.05, 0.6])
+    sub = s.subset(((s.positions >= lo) & (s.positions <= hi)).all(1).nonzero().squeeze(1))
+    sub = sub.subset(torch.arange(0, sub.num_anchors, 2))  # a few hundred anchors
+    return SceneModel(sub, m.decoder)
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    """(dataset folder, anchor PLY of the scene that rendered it)."""
+    from proxycodec.model import image_to_uint8
+
+    root = tmp_path_factory.mktemp("tiny_tradeoff")
+    model = _tiny_scene()
+    cams = orbit_cameras((0.55, -0.45, 0.2), 1.8, 8, elevation_deg=35.0, fov_x_deg=45.0, width=SIZE, height=SIZE)
+    fov = 2 * math.atan(0.5 * SIZE / cams[0].fx)
+    splits = {"train": [c for i, c in enumerate(cams) if i % 4 != 0],
+              "test": [c for i, c in enumerate(cams) if i % 4 == 0]}
+    data = root / "data"
+    for split, cs in splits.items():
+        (data / split).mkdir(parents=True)
+        frames = []
+        for k, cam in enumerate(cs):
+            Image.fromarray(image_to_uint8(model.render(cam, 1.0).image)).save(data / split / f"r_{k}.png")
+            c2w = np.linalg.inv(cam.world_to_camera)
+            c2w[:3, 1:3] *= -1.0  # OpenCV -> OpenGL/Blender axes
+            frames.append({"file_path": f"./{split}/r_{k}", "transform_matrix": c2w.tolist()})
+        (data / f"transforms_{split}.json").write_text(json.dumps({"camera_angle_x": fov, "frames": frames}))
+    model.cameras = list(cams)
+    ply, _ = model.save(root / "scene.ply")
+    return data, ply
+
+
+def small_config(**kw):
+    from proxycodec.train import FitConfig
+
+    base = {"iters": 24, "max_width": None, "init_points": 200, "update_interval": 10, "predictor_warmup": 5,
+            "predictor_hidden": 16, "predictor_blocks": 1, "checkpoint_every": 0, "log_every": 1e9, "seed": 3}
+    base.update(kw)
+    return FitConfig(**base)
+
+
+def _fit(data_dir, out, cfg):
+    from proxycodec.formats.datasets import load_dataset
+    from proxycodec.train import fit
+
+    return fit(load_dataset(data_dir), out, cfg, dataset_root="tiny", log=lambda s: None)
+
+
+# ------------------------------------------------------------------------------------------------ L_recon
+class TestReconLoss:
+    def test_variants_match_hand_computation(self):
+        from proxycodec.proxy import recon_loss
+
+        pred = torch.tensor([[1.0, 2.0, 0.0], [0.0, -1.0, 1.0]])
+        tgt = torch.tensor([[1.0, 0.0, 0.0], [1.0, 1.0, 1.0]])
+        mse = ((0 + 4 + 0) + (1 + 4 + 0)) / 2  # row sums of squares, mean over rows
+        l1 = ((0 + 2 + 0) + (1 + 2 + 0)) / 2
+        cos0 = 1.0 / math.sqrt(5.0)  # <(1,2,0),(1,0,0)> / (sqrt5 * 1)
+        cos1 = 0.0  # <(0,-1,1),(1,1,1)> = 0
+        ours = mse + 0.1 * ((1 - cos0) + (1 - cos1)) / 2
+        assert float(recon_loss(pred, tgt, kind="mse")) == pytest.approx(mse)
+        assert float(recon_loss(pred, tgt, kind="l1")) == pytest.approx(l1)
+        assert float(recon_loss(pred, tgt)) == pytest.approx(ours)
+        assert float(recon_loss(pred, tgt, kind="mse+cos")) == pytest.approx(ours)
+        with pytest.raises(ProxycodecError, match="unknown reconstruction loss"):
+            recon_loss(pred, tgt, kind="huber")
+
+    def test_fit_config_validates_the_switches(self):
+        for bad in ({"recon_loss": "huber"}, {"predictor": "attention"}, {"lambda_recon_fixed": -1.0},
+                    {"gate_kappa": 0.0}, {"gate_eta": math.nan}):
+            with pytest.raises(ProxycodecError):
+                small_config(**bad)
+
+    def test_lambda_recon_fixed_replaces_the_schedule(self, tiny):
+        from proxycodec.formats.datasets import load_dataset
+        from proxycodec.train import Trainer
+
+        data = load_dataset(tiny[0])
+        sched = Trainer(data, small_config(), "tiny")
+        assert (sched.lambda_recon(0.6), sched.lambda_recon(0.7)) == (0.1, 0.01)
+        fixed = Trainer(data, small_config(lambda_recon_fixed=0.1), "tiny")
+        assert (fixed.lambda_recon(0.6), fixed.lambda_recon(0.9)) == (0.1, 0.1)
+
+    def test_predictor_training_uses_the_chosen_loss(self):
+        from proxycodec.proxy import PredictorConfig, ResidualPredictor, TrainConfig, train_predictor
+
+        g = torch.Generator().manual_seed(0)
+        pos = torch.rand(60, 3, generator=g)
+        feats = torch.randn(60, 8, generator=g)
+        mask = np.zeros(60, bool)
+        mask[::3] = True
+        finals = {}
+        for kind in ("mse+cos", "mse", "l1"):
+            torch.manual_seed(0)
+            p = ResidualPredictor(PredictorConfig(feat_dim=8, n_offsets=2, hidden=8, n_blocks=1, dist_ref=0.05))
+            finals[kind] = train_predictor(p, pos, feats, mask, config=TrainConfig(iters=20, seed=0), recon=kind)
+        assert len({round(r.final_loss, 6) for r in finals.values()}) == 3
+        assert finals["l1"].baseline_loss != finals["mse"].baseline_loss
+
+
+# ------------------------------------------------------------------------------------------------ Proxy&Leaf MLP
+class TestProxyLeafMLP:
+    def test_shapes_json_and_arrays_round_trip(self):
+        from proxycodec.proxy import ProxyLeafConfig, ProxyLeafMLP, predictor_from_json
+
+        cfg = ProxyLeafConfig(feat_dim=8, n_offsets=2, hidden=16, n_blocks=1, pe_pos_freqs=3,
+                              scene_center=(0.5, 0.0, 0.0), scene_radius=2.0)
+        torch.manual_seed(0)
+        p = ProxyLeafMLP(cfg)
+        g = torch.Generator().manual_seed(1)
+        pos, feats = torch.rand(10, 3, generator=g), torch.randn(10, 8, generator=g)
+        nearest, leaves = torch.zeros(10, dtype=torch.long), torch.arange(1, 10)
+        out, offs = p.predict(pos, feats, nearest, leaves)
+        assert out.shape == (9, 8) and offs is None
+        assert p.geometry(pos[leaves], pos[nearest[leaves]]).shape == (9, 2 * 3 * (1 + 2 * 3))
+        # the leaf is an input (its position), and the output is not a residual on the proxy feature
+        out2, _ = p.predict(pos + torch.tensor([0.01, 0.0, 0.0]) * (torch.arange(10) > 0)[:, None], feats,
+                            nearest, leaves)
+        assert not torch.allclose(out, out2)
+        q = predictor_from_json(json.loads(json.dumps(cfg.to_json())), p.state_arrays())
+        assert isinstance(q, ProxyLeafMLP) and q.config == cfg
+        assert torch.equal(q.predict(pos, feats, nearest, leaves)[0], out)
+
+    def test_fit_trains_it_and_encode_refits_a_residual_predictor(self, tiny, tmp_path):
+        from proxycodec import codec
+        from proxycodec.formats.container import read_container
+        from proxycodec.model import SceneModel, weights_path_for
+        from proxycodec.train import load_predictor
+
+        out = tmp_path / "pl.ply"
+        res = _fit(tiny[0], out, small_config(predictor="proxy-leaf-mlp", recon_loss="l1"))
+        meta = read_container(weights_path_for(out)).meta["fit"]
+        assert meta["predictor"]["kind"] == "proxy-leaf-mlp" and meta["stage"] == 2
+        assert meta["config"]["predictor"] == "proxy-leaf-mlp" and meta["config"]["recon_loss"] == "l1"
+        assert load_predictor(weights_path_for(out)) == (None, None)  # the container stores residual ones only
+        m = SceneModel.load(out)
+        assert torch.equal(m.scene.features, res.model.scene.features)
+        r = codec.encode(out, tmp_path / "pl.pxc", predictor_iters=5)
+        assert r.meta["proxy"]["source"] == "encode"
+        assert codec.decode(tmp_path / "pl.pxc").scene.num_anchors == m.scene.num_anchors
+
+    def test_checkpoint_round_trip_in_stage_2(self, tiny, tmp_path):
+        from proxycodec.formats.datasets import load_dataset
+        from proxycodec.proxy import ProxyLeafMLP
+        from proxycodec.train import Trainer
+
+        data = load_dataset(tiny[0])
+        cfg = small_config(predictor="proxy-leaf-mlp", iters=10)
+        tr = Trainer(data, cfg, "tiny")
+        for _ in range(6):
+            tr.train_step()
+        assert tr.stage == 2 and isinstance(tr.predictor, ProxyLeafMLP)
+        tr.save_checkpoint(tmp_path / "c.pxc")
+        tr2 = Trainer(data, cfg, "tiny")
+        tr2.load_checkpoint(tmp_path / "c.pxc")
+        assert isinstance(tr2.predictor, ProxyLeafMLP)
+        for a, b in zip(tr.predictor.state_dict().values(), tr2.predictor.state_dict().values()):
+            assert torch.equal(a, b)
+
+
+# ------------------------------------------------------------------------------------------------ gate
+class TestGateSwitches:
+    @pytest.fixture(scope="class")
+    def gated(self, tiny, tmp_path_factory):
+        out = tmp_path_factory.mktemp("gated") / "g.ply"
+        r = CliRunner().invoke(_cli(), ["fit", str(tiny[0]), "-o", str(out), "--iters", "8", "--init-points", "200",
+                                        "--gate-kappa", "6", "--gate-eta", "0.5", "--no-proxies"])
+        assert r.exit_code == 0, r.output
+        return out
+
+    def test_kappa_eta_are_stored_and_rendered_with(self, gated, tmp_path):
+        from proxycodec import codec
+        from proxycodec.model import SceneModel, render_scene
+        from proxycodec.render.project import GateConfig
+
+        m = SceneModel.load(gated)
+        assert m.decoder.config.gate == GateConfig(True, 6.0, 0.5)
+        assert m.meta["fit"]["config"]["gate_kappa"] == 6.0 and m.meta["fit"]["config"]["gate_eta"] == 0.5
+        codec.encode(gated, tmp_path / "g.pxc", predictor_iters=2)
+        assert codec.decode(tmp_path / "g.pxc").decoder.config.gate == GateConfig(True, 6.0, 0.5)
+        cam = m.cameras[0]
+        with torch.no_grad():
+            r1 = render_scene(m.scene, m.decoder, cam, 0.5)  # the model's own gate
+            r2 = render_scene(m.scene, m.decoder, cam, 0.5, gate=GateConfig(True, 4.0, 0.25))
+        g1 = dict(zip(r1.projected.index.tolist(), r1.projected.gate.double().tolist()))
+        g2 = dict(zip(r2.projected.index.tolist(), r2.projected.gate.double().tolist()))
+        common = [i for i in g1 if i in g2 and 0.02 < g1[i] < 0.98 and 0.02 < g2[i] < 0.98]
+        assert len(common) > 5
+        logit = lambda g: math.log(g / (1 - g))  # noqa: E731
+        for i in common:  # the same coverage A = eta + logit(g) / kappa under both settings
+            assert 0.5 + logit(g1[i]) / 6.0 == pytest.approx(0.25 + logit(g2[i]) / 4.0, abs=2e-4)
+        assert any(abs(g1[i] - g2[i]) > 0.01 for i in common)
+
+    def test_eval_gate_on_off_differ(self, tiny, tmp_path):
+        out = tmp_path / "ng.ply"
+        r = CliRunner().invoke(_cli(), ["fit", str(tiny[0]), "-o", str(out), "--iters", "8", "--init-points", "200",
+                                        "--no-gate", "--no-proxies"])
+        assert r.exit_code == 0, r.output
+        reps = {}
+        for mode in ("model", "on", "off"):
+            r = CliRunner().invoke(_cli(), ["eval", str(out), str(tiny[0]), "-o", str(tmp_path / mode), "--res",
+                                            "0.25,1.0", "--views", "1", "--gate", mode])
+            assert r.exit_code == 0, r.output
+            reps[mode] = json.loads((tmp_path / mode / "eval.json").read_text())
+        assert reps["model"]["summary"]["gate"]["enabled"] is False
+        assert reps["on"]["summary"]["gate"] == {"mode": "on", "enabled": True, "kappa": 4.0, "eta": 0.25}
+        assert reps["off"]["summary"]["psnr_avg"] == reps["model"]["summary"]["psnr_avg"]
+        assert reps["on"]["summary"]["psnr_avg"] != reps["off"]["summary"]["psnr_avg"]
+
+    def test_eval_gate_refuses_plain_3dgs(self, tiny, tmp_path):
+        from proxycodec.bench import apply_gate_mode
+        from proxycodec.explicit import ExplicitModel
+
+        assert apply_gate_mode(object(), "model") is None
+        with pytest.raises(ProxycodecError, match="plain 3DGS"):
+            apply_gate_mode(ExplicitModel.__new__(ExplicitModel), "on")
+
+
+def _cli():
+    from proxycodec.cli.main import cli
+
+    return cli
+
+
+# ------------------------------------------------------------------------------------------------ Pareto
+def test_pareto_front_on_a_hand_made_set():
+    from proxycodec.bench import pareto_front
+
+    pts = [
+        {"bytes": 100, "psnr_avg": 20.0},  # 0 front (smallest)
+        {"bytes": 200, "psnr_avg": 25.0},  # 1 front
+        {"bytes": 250, "psnr_avg": 24.0},  # 2 dominated by 1
+        {"bytes": 300, "psnr_avg": 25.0},  # 3 dominated by 1 (equal PSNR, more bytes)
+        {"bytes": 400, "psnr_avg": 30.0},  # 4 front
+        {"bytes": 400, "psnr_avg": 30.0},  # 5 a duplicate of 4: neither dominates the other
+        {"bytes": 50, "psnr_avg": None},  # 6 ignored
+        {"bytes": 90, "psnr_avg": 19.0},  # 7 front (fewer bytes than 0)
+    ]
+    assert pareto_front(pts) == [7, 0, 1, 4, 5]
+    assert pareto_front([]) == []
+    assert pareto_front([{"t": 3.0, "psnr_avg": 1.0}, {"t": 1.0, "psnr_avg": 2.0}], x="t") == [1]
+
+
+def test_encode_sweep_plan_centres_on_the_defaults():
+    from proxycodec.bench import _knob_id, encode_sweep_plan
+    from proxycodec.codec import EncodeConfig
+
+    plan = encode_sweep_plan(quick=True)
+    assert {n for n, _, _ in plan} == {"proxy_ratio", "leaf_sample", "bits", "zstd_level", "predictor_blocks"}
+    for name, _, knobs in plan:
+        assert knobs["use_fitted"] is False
+        EncodeConfig(**knobs).check()
+    ids = {_knob_id(k) for _, _, k in plan}
+    assert "encode default (refit)" in ids and "encode proxy_ratio=0.1" in ids
+    with pytest.raises(ProxycodecError, match="unknown sweep"):
+        encode_sweep_plan(True, ["nope"])
+
+
+def test_encode_leaf_sample_is_recorded(tiny, tmp_path):
+    from proxycodec import codec
+
+    r = codec.encode(tiny[1], tmp_path / "a.pxc", predictor_iters=3, leaf_sample=0.05)
+    assert r.meta["training"]["sample_frac"] == 0.05
+    with pytest.raises(ProxycodecError, match="leaf sample"):
+        codec.encode(tiny[1], tmp_path / "b.pxc", leaf_sample=0.0)
+
+
+# ------------------------------------------------------------------------------------------------ bench
+def _check_outputs(out: Path) -> dict:
+    res = json.loads((out / "results.json").read_text())
+    for name in ("bench.md", "psnr_vs_bytes.png", "psnr_vs_time.png", "render_time_vs_resolution.png"):
+        assert (out / name).stat().st_size > 0, name
+    assert res["meta"]["machine"]["cpu_count"] and res["meta"]["versions"]["torch"]
+    assert res["runs"][-1]["loadavg_start"] is not None and "loadavg_end" in res["runs"][-1]
+    return res
+
+
+def test_bench_quick_end_to_end_in_process(tiny, tmp_path):
+    data, ply = tiny
+    out = tmp_path / "b"
+    r = CliRunner().invoke(_cli(), ["bench", str(ply), str(data), "--quick", "-o", str(out), "--in-process",
+                                    "--views", "1", "--sweeps", "proxy_ratio,zstd_level", "--predictor-iters", "100"])
+    assert r.exit_code == 0, r.output
+    res = _check_outputs(out)
+    pts = {p["id"]: p for p in res["points"]}
+    sweeps = {n for p in res["points"] for n in (p.get("sweeps") or {})}
+    assert sweeps == {"proxy_ratio", "zstd_level"}  # (every sweep's plan: test_encode_sweep_plan_...)
+    d = pts["encode default"]
+    assert d["default"] and d["bytes"] > 0 and math.isfinite(d["psnr_avg"]) and d["views"] == 1
+    assert set(d["render_ms"]) == {f"{0.1 * k:.1f}".rstrip("0").rstrip(".") for k in range(1, 11)}
+    assert pts["encode proxy_ratio=0.1"]["bytes"] < pts["encode proxy_ratio=0.6"]["bytes"]
+    z3 = pts["encode zstd_level=3"]
+    assert z3["quality_from"] in ("encode default", "encode default (refit)") and z3["decode_seconds"] is not None
+    assert z3["psnr_avg"] == pts["encode default (refit)"]["psnr_avg"]
+    assert any(p["pareto"] for p in res["points"])
+    md = (out / "bench.md").read_text()
+    assert "### Sweep: proxy_ratio" in md and "Pareto" in md and "Render time per resolution" in md
+
+
+def test_bench_subprocess_steps_and_resume(tiny, tmp_path):
+    """The real path: every step in its own process (per-step RSS); a second run reuses every step."""
+    from proxycodec.bench import run_bench
+
+    data, ply = tiny
+    out = tmp_path / "s"
+    logs = []
+    run_bench(str(ply), str(data), str(out), quick=True, views=1, sweeps=["zstd_level"], predictor_iters=50,
+              log=logs.append)
+    res = _check_outputs(out)
+    steps = res["steps"]
+    assert all(s["status"] == "ok" and s["rss_scope"] == "own process" for s in steps.values())
+    assert all(s["result"]["peak_rss_mb"] > 10 for s in steps.values())
+    assert {s["kind"] for s in steps.values()} == {"encode", "eval"}
+    n_logged = len(logs)
+    run_bench(str(ply), str(data), str(out), quick=True, views=1, sweeps=["zstd_level"], predictor_iters=50,
+              log=logs.append)
+    assert len(logs) == n_logged  # nothing ran again
+    assert len(json.loads((out / "results.json").read_text())["runs"]) == 2
