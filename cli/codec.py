@@ -37,6 +37,8 @@ def _stderr(msg: str) -> None:
 @click.option("--drop-dead-offsets/--keep-dead-offsets", default=False, show_default=True,
               help="Store the offsets of neural Gaussians that are never drawn as 0 (-1.5% bytes, ~9x encode time).")
 @click.option("--predictor-iters", default=2000, show_default=True, type=int)
+@click.option("--leaf-sample", default=0.2, show_default=True, type=float,
+              help="Fraction of the leaves in each predictor iteration (L_recon).")
 @click.option("--zstd-level", default=19, show_default=True, type=int)
 @click.option("--seed", default=0, show_default=True, type=int)
 @click.option("--refit-predictor", is_flag=True,
@@ -44,7 +46,7 @@ def _stderr(msg: str) -> None:
 @click.option("--json", "as_json", is_flag=True, help="Print the encode report as JSON on stdout.")
 @user_errors
 def encode(scene, out, weights, proxy_ratio, cell_size, feature_bits, offset_bits, scaling_bits, weights_dtype,
-           predict_offsets, max_cameras, drop_dead_offsets, predictor_iters, zstd_level, seed, refit_predictor,
+           predict_offsets, max_cameras, drop_dead_offsets, predictor_iters, leaf_sample, zstd_level, seed, refit_predictor,
            as_json) -> None:
     """Compress an anchor scene (Scaffold-GS PLY + weights sidecar) to a proxy-anchor container.
 
@@ -57,7 +59,8 @@ def encode(scene, out, weights, proxy_ratio, cell_size, feature_bits, offset_bit
     source = (scene, weights) if weights else scene
     r = codec.encode(source, out, proxy_ratio=proxy_ratio, cell_size=cell_size, feature_bits=feature_bits,
                      offset_bits=offset_bits, scaling_bits=scaling_bits, weights_dtype=weights_dtype,
-                     predict_offsets=predict_offsets, max_cameras=max_cameras, predictor_iters=predictor_iters, zstd_level=zstd_level,
+                     predict_offsets=predict_offsets, max_cameras=max_cameras, predictor_iters=predictor_iters, leaf_sample=leaf_sample,
+                     zstd_level=zstd_level,
                      seed=seed, use_fitted=not refit_predictor, drop_dead_offsets=drop_dead_offsets,
                      progress=_stderr)
     if as_json:

@@ -49,7 +49,7 @@ from .formats.inria_ply import GaussianPly, read_inria_ply, rgb_to_sh_dc, write_
 from .metrics import dssim, mse_to_psnr
 from .render import GateConfig, RenderResult, render_gaussians
 from .render.project import quat_to_rotmat
-from .train import _Adam, _exp_lr, _fmt_time, _knn_scale, _TargetImages
+from .train import _Adam, _exp_lr, _fmt_time, _knn_scale, _TargetImages, timed_step
 
 __all__ = [
     "NO_GATE",
@@ -484,23 +484,11 @@ def run_explicit(data, cfg: ExplicitConfig = ExplicitConfig(), log: ProgressFn |
         f"iters {cfg.iters}, time budget {cfg.time_budget}")
     last_log = time.perf_counter()
     while not tr.done():
-        t0 = time.perf_counter()
-        st = tr.train_step()
-        tr.elapsed += time.perf_counter() - t0
-        a = 0.05 if tr.ema_loss is not None else 1.0
-        tr.ema_loss = st["loss"] if tr.ema_loss is None else (1 - a) * tr.ema_loss + a * st["loss"]
-        tr.ema_psnr = st["psnr"] if tr.ema_psnr is None else (1 - a) * tr.ema_psnr + a * st["psnr"]
-        now = time.perf_counter()
-        if now - last_log >= cfg.log_every or tr.done() or tr.iteration == 1:
-            last_log = now
-            p = tr.progress()
-            eta = tr.elapsed * (1 - p) / max(p, 1e-9)
-            total = cfg.iters if cfg.iters is not None else "?"
-            log(f"it {tr.iteration:6d}/{total}  loss {tr.ema_loss:.4f}  psnr {tr.ema_psnr:5.2f}  "
-                f"gauss {tr.num_gaussians:7d}  drawn {st['drawn']:7d}  {_fmt_time(tr.elapsed)} elapsed  "
-                f"eta {_fmt_time(eta)}")
-            tr.history.append({"it": tr.iteration, "loss": round(tr.ema_loss, 6), "psnr": round(tr.ema_psnr, 4),
-                               "gaussians": tr.num_gaussians, "seconds": round(tr.elapsed, 2)})
+        _, logged = timed_step(tr, cfg.log_every, last_log, log,
+                               lambda st: f"gauss {tr.num_gaussians:7d}  drawn {st['drawn']:7d}",
+                               lambda: {"gaussians": tr.num_gaussians})
+        if logged:
+            last_log = time.perf_counter()
     ply = tr.result()
     if out is not None:
         write_inria_ply(out, ply)

@@ -933,6 +933,30 @@ def _fmt_time(s: float) -> str:
     return f"{s // 3600:d}:{s % 3600 // 60:02d}:{s % 60:02d}" if s >= 3600 else f"{s // 60:02d}:{s % 60:02d}"
 
 
+
+def timed_step(tr, log_every: float, last_log: float, log: ProgressFn, detail, hist_extra) -> tuple[dict, bool]:
+    """One ``tr.train_step()``, timed into ``tr.elapsed``; EMA loss/PSNR; a progress line (and a history entry) at
+    most every ``log_every`` seconds, on the first and on the last iteration. ``detail(st)``: the trainer's own
+    fields for the line; ``hist_extra()``: its own history fields. Shared by the anchor and the explicit trainers.
+    -> (the step's stats, whether a line was written)."""
+    t0 = time.perf_counter()
+    st = tr.train_step()
+    tr.elapsed += time.perf_counter() - t0
+    a = 0.05 if tr.ema_loss is not None else 1.0
+    tr.ema_loss = st["loss"] if tr.ema_loss is None else (1 - a) * tr.ema_loss + a * st["loss"]
+    tr.ema_psnr = st["psnr"] if tr.ema_psnr is None else (1 - a) * tr.ema_psnr + a * st["psnr"]
+    if not (time.perf_counter() - last_log >= log_every or tr.done() or tr.iteration == 1):
+        return st, False
+    p = tr.progress()
+    eta = tr.elapsed * (1 - p) / max(p, 1e-9)
+    total = tr.cfg.iters if tr.cfg.iters is not None else "?"
+    log(f"it {tr.iteration:6d}/{total}  loss {tr.ema_loss:.4f}  psnr {tr.ema_psnr:5.2f}  {detail(st)}  "
+        f"{_fmt_time(tr.elapsed)} elapsed  eta {_fmt_time(eta)}")
+    tr.history.append({"it": tr.iteration, "loss": round(tr.ema_loss, 6), "psnr": round(tr.ema_psnr, 4),
+                       **hist_extra(), "seconds": round(tr.elapsed, 2)})
+    return st, True
+
+
 def fit(data, out_ply: str | os.PathLike, config: FitConfig = FitConfig(), *, dataset_root: str = "",
         resume: bool = False, log: ProgressFn | None = None, keep_checkpoint: bool = False,
         stop_after: int | None = None) -> FitResult:
@@ -959,25 +983,12 @@ def fit(data, out_ply: str | os.PathLike, config: FitConfig = FitConfig(), *, da
     n_this_call = 0
     try:
         while not tr.done():
-            t0 = time.perf_counter()
-            st = tr.train_step()
-            tr.elapsed += time.perf_counter() - t0
+            _, logged = timed_step(tr, config.log_every, last_log, log, lambda st: (
+                f"xi {st['xi']:.2f}  gauss {st['gaussians']:7d}  anchors {tr.anchors.num_anchors:6d}  "
+                f"stage {tr.stage}"), lambda: {"anchors": tr.anchors.num_anchors})
             n_this_call += 1
-            a = 0.05 if tr.ema_loss is not None else 1.0
-            tr.ema_loss = st["loss"] if tr.ema_loss is None else (1 - a) * tr.ema_loss + a * st["loss"]
-            tr.ema_psnr = st["psnr"] if tr.ema_psnr is None else (1 - a) * tr.ema_psnr + a * st["psnr"]
             now = time.perf_counter()
-            if now - last_log >= config.log_every or tr.done() or tr.iteration == 1:
-                last_log = now
-                p = tr.progress()
-                eta = tr.elapsed * (1 - p) / max(p, 1e-9)
-                total = config.iters if config.iters is not None else "?"
-                log(f"it {tr.iteration:6d}/{total}  loss {tr.ema_loss:.4f}  psnr {tr.ema_psnr:5.2f}  "
-                    f"xi {st['xi']:.2f}  gauss {st['gaussians']:7d}  anchors {tr.anchors.num_anchors:6d}  "
-                    f"stage {tr.stage}  {_fmt_time(tr.elapsed)} elapsed  eta {_fmt_time(eta)}")
-                tr.history.append({"it": tr.iteration, "loss": round(tr.ema_loss, 6),
-                                   "psnr": round(tr.ema_psnr, 4), "anchors": tr.anchors.num_anchors,
-                                   "seconds": round(tr.elapsed, 2)})
+            last_log = now if logged else last_log
             if config.checkpoint_every > 0 and now - last_ckpt >= config.checkpoint_every and not tr.done():
                 tr.save_checkpoint(ckpt)
                 last_ckpt = time.perf_counter()

@@ -44,3 +44,30 @@ def one_thread():
     yield
     torch.set_num_threads(old_t)
     numba.set_num_threads(old_n)
+
+
+def write_blender(root: Path, splits: dict, render) -> Path:
+    """Write a tiny NeRF-Synthetic-style dataset: ``splits`` maps "train"/"test" to cameras (all the same size and
+    field of view); ``render(camera)`` returns the [H, W, 3] image in [0, 1] (a torch tensor or numpy array)."""
+    import json
+    import math
+
+    import numpy as np
+    from PIL import Image
+
+    from proxycodec.lite import image_to_uint8
+
+    cams = [c for cs in splits.values() for c in cs]
+    fov = 2 * math.atan(0.5 * cams[0].width / cams[0].fx)
+    for split, cs in splits.items():
+        (root / split).mkdir(parents=True)
+        frames = []
+        for k, cam in enumerate(cs):
+            img = render(cam)
+            img = img.detach().cpu().numpy() if hasattr(img, "detach") else np.asarray(img)
+            Image.fromarray(image_to_uint8(img)).save(root / split / f"r_{k}.png")
+            c2w = np.linalg.inv(cam.world_to_camera)
+            c2w[:3, 1:3] *= -1.0  # OpenCV -> OpenGL/Blender axes
+            frames.append({"file_path": f"./{split}/r_{k}", "transform_matrix": c2w.tolist()})
+        (root / f"transforms_{split}.json").write_text(json.dumps({"camera_angle_x": fov, "frames": frames}))
+    return root

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from PIL import Image
+from conftest import write_blender
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -25,7 +25,6 @@ SIZE = 24
 def tiny_blender(tmp_path_factory) -> Path:
     from proxycodec.camera import orbit_cameras
     from proxycodec.explicit import NO_GATE
-    from proxycodec.model import image_to_uint8
     from proxycodec.render import render_gaussians
 
     root = tmp_path_factory.mktemp("tiny_explicit")
@@ -38,20 +37,10 @@ def tiny_blender(tmp_path_factory) -> Path:
     cols = torch.tensor([[0.9, 0.1, 0.1], [0.1, 0.8, 0.2], [0.1, 0.2, 0.9], [0.9, 0.8, 0.1],
                          [0.6, 0.1, 0.7], [0.1, 0.7, 0.7]])
     cams = orbit_cameras((0.0, 0.0, 0.0), 2.5, 10, elevation_deg=30.0, fov_x_deg=40.0, width=SIZE, height=SIZE)
-    fov = 2 * math.atan(0.5 * SIZE / cams[0].fx)
     splits = {"train": [c for i, c in enumerate(cams) if i % 5 != 0],
               "test": [c for i, c in enumerate(cams) if i % 5 == 0]}
-    for split, cs in splits.items():
-        (root / split).mkdir()
-        frames = []
-        for k, cam in enumerate(cs):
-            img = render_gaussians(means, quats, scales, ops, cols, cam, gate=NO_GATE, backend="reference").image
-            Image.fromarray(image_to_uint8(img)).save(root / split / f"r_{k}.png")
-            c2w = np.linalg.inv(cam.world_to_camera)
-            c2w[:3, 1:3] *= -1.0  # OpenCV -> OpenGL/Blender axes
-            frames.append({"file_path": f"./{split}/r_{k}", "transform_matrix": c2w.tolist()})
-        (root / f"transforms_{split}.json").write_text(json.dumps({"camera_angle_x": fov, "frames": frames}))
-    return root
+    return write_blender(root, splits, lambda cam: render_gaussians(means, quats, scales, ops, cols, cam, gate=NO_GATE,
+                                                                    backend="reference").image)
 
 
 @pytest.fixture(scope="module")

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import torch
 from click.testing import CliRunner
-from PIL import Image
+from conftest import write_blender
 
 from proxycodec.camera import orbit_cameras
 from proxycodec.errors import ProxycodecError
@@ -39,24 +39,12 @@ def _tiny_scene():
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory):
     """(dataset folder, anchor PLY of the scene that rendered it)."""
-    from proxycodec.model import image_to_uint8
-
     root = tmp_path_factory.mktemp("tiny_tradeoff")
     model = _tiny_scene()
     cams = orbit_cameras((0.55, -0.45, 0.2), 1.8, 8, elevation_deg=35.0, fov_x_deg=45.0, width=SIZE, height=SIZE)
-    fov = 2 * math.atan(0.5 * SIZE / cams[0].fx)
     splits = {"train": [c for i, c in enumerate(cams) if i % 4 != 0],
               "test": [c for i, c in enumerate(cams) if i % 4 == 0]}
-    data = root / "data"
-    for split, cs in splits.items():
-        (data / split).mkdir(parents=True)
-        frames = []
-        for k, cam in enumerate(cs):
-            Image.fromarray(image_to_uint8(model.render(cam, 1.0).image)).save(data / split / f"r_{k}.png")
-            c2w = np.linalg.inv(cam.world_to_camera)
-            c2w[:3, 1:3] *= -1.0  # OpenCV -> OpenGL/Blender axes
-            frames.append({"file_path": f"./{split}/r_{k}", "transform_matrix": c2w.tolist()})
-        (data / f"transforms_{split}.json").write_text(json.dumps({"camera_angle_x": fov, "frames": frames}))
+    data = write_blender(root / "data", splits, lambda cam: model.render(cam, 1.0).image)
     model.cameras = list(cams)
     ply, _ = model.save(root / "scene.ply")
     return data, ply
@@ -73,6 +61,7 @@ def small_config(**kw):
 
 def _fit(data_dir, out, cfg):
     from proxycodec.formats.datasets import load_dataset
+
     from proxycodec.train import fit
 
     return fit(load_dataset(data_dir), out, cfg, dataset_root="tiny", log=lambda s: None)
@@ -105,6 +94,7 @@ class TestReconLoss:
 
     def test_lambda_recon_fixed_replaces_the_schedule(self, tiny):
         from proxycodec.formats.datasets import load_dataset
+
         from proxycodec.train import Trainer
 
         data = load_dataset(tiny[0])
@@ -154,8 +144,9 @@ class TestProxyLeafMLP:
         assert torch.equal(q.predict(pos, feats, nearest, leaves)[0], out)
 
     def test_fit_trains_it_and_encode_refits_a_residual_predictor(self, tiny, tmp_path):
-        from proxycodec import codec
         from proxycodec.formats.container import read_container
+
+        from proxycodec import codec
         from proxycodec.model import SceneModel, weights_path_for
         from proxycodec.train import load_predictor
 
@@ -173,6 +164,7 @@ class TestProxyLeafMLP:
 
     def test_checkpoint_round_trip_in_stage_2(self, tiny, tmp_path):
         from proxycodec.formats.datasets import load_dataset
+
         from proxycodec.proxy import ProxyLeafMLP
         from proxycodec.train import Trainer
 
@@ -218,7 +210,7 @@ class TestGateSwitches:
         g2 = dict(zip(r2.projected.index.tolist(), r2.projected.gate.double().tolist()))
         common = [i for i in g1 if i in g2 and 0.02 < g1[i] < 0.98 and 0.02 < g2[i] < 0.98]
         assert len(common) > 5
-        logit = lambda g: math.log(g / (1 - g))  # noqa: E731
+        logit = lambda g: math.log(g / (1 - g))
         for i in common:  # the same coverage A = eta + logit(g) / kappa under both settings
             assert 0.5 + logit(g1[i]) / 6.0 == pytest.approx(0.25 + logit(g2[i]) / 4.0, abs=2e-4)
         assert any(abs(g1[i] - g2[i]) > 0.01 for i in common)

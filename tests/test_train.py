@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from PIL import Image
+from conftest import write_blender
 
 from proxycodec.camera import orbit_cameras
 from proxycodec.errors import ProxycodecError
@@ -27,7 +27,7 @@ SIZE = 32
 # ------------------------------------------------------------------------------------------------ fixtures
 @pytest.fixture(scope="module")
 def tiny_dataset(tmp_path_factory) -> Path:
-    from proxycodec.model import SceneModel, image_to_uint8
+    from proxycodec.model import SceneModel
     from proxycodec.sample import sample_model
 
     root = tmp_path_factory.mktemp("tiny_blender")
@@ -37,19 +37,8 @@ def tiny_dataset(tmp_path_factory) -> Path:
     sub = s.subset(((s.positions >= lo) & (s.positions <= hi)).all(1).nonzero().squeeze(1))
     model = SceneModel(sub, m.decoder)
     cams = orbit_cameras((0.55, -0.45, 0.2), 1.8, 10, elevation_deg=35.0, fov_x_deg=45.0, width=SIZE, height=SIZE)
-    fov = 2 * math.atan(0.5 * SIZE / cams[0].fx)
     splits = {"train": [c for i, c in enumerate(cams) if i % 5 != 0], "test": [c for i, c in enumerate(cams) if i % 5 == 0]}
-    for split, cs in splits.items():
-        (root / split).mkdir()
-        frames = []
-        for k, cam in enumerate(cs):
-            img = model.render(cam, 1.0).image
-            Image.fromarray(image_to_uint8(img)).save(root / split / f"r_{k}.png")
-            c2w = np.linalg.inv(cam.world_to_camera)
-            c2w[:3, 1:3] *= -1.0  # OpenCV -> OpenGL/Blender axes
-            frames.append({"file_path": f"./{split}/r_{k}", "transform_matrix": c2w.tolist()})
-        (root / f"transforms_{split}.json").write_text(json.dumps({"camera_angle_x": fov, "frames": frames}))
-    return root
+    return write_blender(root, splits, lambda cam: model.render(cam, 1.0).image)
 
 
 @pytest.fixture(scope="module")
