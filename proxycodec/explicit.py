@@ -49,7 +49,7 @@ from .formats.inria_ply import GaussianPly, read_inria_ply, rgb_to_sh_dc, write_
 from .metrics import dssim, mse_to_psnr
 from .render import GateConfig, RenderResult, render_gaussians
 from .render.project import quat_to_rotmat
-from .train import _Adam, _exp_lr, _fmt_time, _knn_scale, _TargetImages, timed_step
+from .train import RunSchedule, _Adam, _exp_lr, _fmt_time, _knn_scale, _TargetImages, timed_step
 
 __all__ = [
     "NO_GATE",
@@ -291,7 +291,7 @@ def initial_gaussians(data, cfg: ExplicitConfig, rng: np.random.Generator) -> di
 ProgressFn = Callable[[str], None]
 
 
-class ExplicitTrainer:
+class ExplicitTrainer(RunSchedule):
     """Owns the Gaussians, the optimiser and the densification statistics of one plain 3DGS run."""
 
     def __init__(self, data, config: ExplicitConfig, log: ProgressFn | None = None):
@@ -330,24 +330,6 @@ class ExplicitTrainer:
         self.denom = torch.zeros(n, dtype=torch.float64)
 
     # ------------------------------------------------------------------ schedule
-    def progress(self) -> float:
-        c = self.cfg
-        p = self.iteration / c.iters if c.iters is not None else 0.0
-        if c.time_budget is not None:
-            p = max(p, self.elapsed / c.time_budget)
-        return min(p, 1.0)
-
-    def done(self) -> bool:
-        return self.progress() >= 1.0
-
-    def expected_iterations(self) -> float:
-        c = self.cfg
-        if c.time_budget is None:
-            return float(c.iters)
-        p = self.progress()
-        est = self.iteration / p if p > 0.02 and self.iteration > 0 else float(c.iters or 1e9)
-        return min(est, float(c.iters)) if c.iters is not None else est
-
     def densify_interval(self) -> int:
         c = self.cfg
         return int(min(c.densify_interval, max(10, round(self.expected_iterations() * c.densify_interval_frac))))

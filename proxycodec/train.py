@@ -409,7 +409,33 @@ def checkpoint_path_for(out_ply: str | os.PathLike) -> Path:
 ProgressFn = Callable[[str], None]
 
 
-class Trainer:
+class RunSchedule:
+    """Where a run stands: ``cfg.iters`` and/or ``cfg.time_budget`` against ``iteration`` and ``elapsed`` (shared by
+    the anchor and the explicit trainers)."""
+
+    def progress(self) -> float:
+        c = self.cfg
+        p = 0.0
+        if c.iters is not None:
+            p = self.iteration / c.iters
+        if c.time_budget is not None:
+            p = max(p, self.elapsed / c.time_budget)
+        return min(p, 1.0)
+
+    def done(self) -> bool:
+        return self.progress() >= 1.0
+
+    def expected_iterations(self) -> float:
+        """The run's length in iterations: ``iters``, or extrapolated from the pace so far under a time budget."""
+        c = self.cfg
+        if c.time_budget is None:
+            return float(c.iters)
+        p = self.progress()
+        est = self.iteration / p if p > 0.02 and self.iteration > 0 else float(c.iters or 1e9)
+        return min(est, float(c.iters)) if c.iters is not None else est
+
+
+class Trainer(RunSchedule):
     """Owns the anchors, the decoder, the predictor, the optimiser and the running statistics of one fit."""
 
     def __init__(self, data, config: FitConfig, dataset_root: str = "", log: ProgressFn | None = None):
@@ -461,17 +487,6 @@ class Trainer:
         self.offset_denom = torch.zeros(M * K, dtype=torch.float64)
 
     # ------------------------------------------------------------------ schedule
-    def progress(self) -> float:
-        c = self.cfg
-        p = 0.0
-        if c.iters is not None:
-            p = self.iteration / c.iters
-        if c.time_budget is not None:
-            p = max(p, self.elapsed / c.time_budget)
-        return min(p, 1.0)
-
-    def done(self) -> bool:
-        return self.progress() >= 1.0
 
     def learning_rates(self, p: float) -> dict[str, float]:
         c = self.cfg
@@ -588,15 +603,6 @@ class Trainer:
         if c.update_from <= p < c.update_until and self.iteration - self.last_adjust >= self.update_interval():
             self.last_adjust = self.iteration
             self.adjust_anchors()
-
-    def expected_iterations(self) -> float:
-        """The run's length in iterations: ``iters``, or extrapolated from the pace so far under a time budget."""
-        c = self.cfg
-        if c.time_budget is None:
-            return float(c.iters)
-        p = self.progress()
-        est = self.iteration / p if p > 0.02 and self.iteration > 0 else float(c.iters or 1e9)
-        return min(est, float(c.iters)) if c.iters is not None else est
 
     def update_interval(self) -> int:
         """Iterations between anchor adjustments: Scaffold-GS's 100 in 30k scaled to short CPU runs (>= 10)."""
