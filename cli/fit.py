@@ -47,6 +47,12 @@ def _no_undistort_option(fn):
               help="Resolution embedding of the anchor features.")
 @click.option("--fixed-res", is_flag=True, help="Ablation: train at 100% only (no random resolution).")
 @click.option("--no-proxies", is_flag=True, help="Ablation: Scaffold-GS only (no proxy anchors / predictor).")
+@click.option("--proxy-ratio", type=float, default=0.3, show_default=True, help="Stage 2: rho, share of proxies per cell.")
+@click.option("--predictor-hidden", type=int, default=64, show_default=True, help="Stage 2: residual predictor width.")
+@click.option("--predictor-blocks", type=int, default=2, show_default=True,
+              help="Stage 2: residual predictor depth (residual blocks).")
+@click.option("--predictor-warmup", type=int, default=300, show_default=True,
+              help="Stage 2: L_recon-only predictor iterations at the stage switch.")
 @click.option("--recon-loss", type=click.Choice(["mse+cos", "mse", "l1"]), default="mse+cos", show_default=True,
               help="Ablation: L_recon of the leaf predictor (supplement Table 6).")
 @click.option("--lambda-recon-fixed", type=float, default=None,
@@ -78,7 +84,8 @@ def _no_undistort_option(fn):
 @click.option("--sh-degree", type=click.IntRange(0, 3), default=1, show_default=True,
               help="With --explicit: spherical-harmonics degree of the Gaussians' colours.")
 @user_errors
-def fit(dataset, out, iters, time_budget, max_width, seed, no_gate, embedding, fixed_res, no_proxies, recon_loss,
+def fit(dataset, out, iters, time_budget, max_width, seed, no_gate, embedding, fixed_res, no_proxies, proxy_ratio,
+        predictor_hidden, predictor_blocks, predictor_warmup, recon_loss,
         lambda_recon_fixed, predictor_kind, gate_kappa, gate_eta, voxel_size, init_points, images, test_every, resume,
         checkpoint_every, keep_checkpoint, backend, explicit, sh_degree) -> None:
     """Train an anchor scene on DATASET (Blender or COLMAP folder, detected by its files) and write OUT
@@ -98,7 +105,9 @@ def fit(dataset, out, iters, time_budget, max_width, seed, no_gate, embedding, f
                     embedding=embedding, fixed_res=fixed_res, proxies=not no_proxies, voxel_size=voxel_size,
                     init_points=init_points, checkpoint_every=checkpoint_every, backend=backend,
                     recon_loss=recon_loss, lambda_recon_fixed=lambda_recon_fixed, predictor=predictor_kind,
-                    gate_kappa=gate_kappa, gate_eta=gate_eta)
+                    gate_kappa=gate_kappa, gate_eta=gate_eta, proxy_ratio=proxy_ratio,
+                    predictor_hidden=predictor_hidden, predictor_blocks=predictor_blocks,
+                    predictor_warmup=predictor_warmup)
     data = _load_data(dataset, max_width, images, test_every)
     res = run_fit(data, out, cfg, dataset_root=str(Path(dataset).resolve()), resume=resume,
                   keep_checkpoint=keep_checkpoint)

@@ -82,3 +82,14 @@ def test_sample_then_render_writes_pngs(tmp_path, xi):
     assert len(pngs) == 1
     im = np.asarray(Image.open(pngs[0]))
     assert im.shape == (10, 13, 3) and im.std() > 5  # a picture, not a flat background
+
+
+def test_fit_rejects_a_bad_predictor_shape_before_training(tmp_path):
+    """Stage-2 options are checked up front (one line, exit 2), not when stage 2 starts half-way through a run."""
+    from click.testing import CliRunner
+
+    from proxycodec.cli.main import cli
+
+    (tmp_path / "d").mkdir()
+    r = CliRunner().invoke(cli, ["fit", str(tmp_path / "d"), "--predictor-hidden", "0", "-o", str(tmp_path / "s.ply")])
+    assert r.exit_code == 2 and "predictor width" in r.output and "Traceback" not in r.output
