@@ -176,12 +176,11 @@ def _load_any(path):
 def eval_cmd(scene, dataset, out_dir, max_width, res, n_views, images, test_every, backend, gate_mode) -> None:
     """Evaluate SCENE on DATASET's test views at many resolutions: PSNR/SSIM/time/Gaussians, JSON + markdown +
     plot + side-by-side crops."""
+    from ..bench import apply_gate_mode
     from ..errors import ProxycodecError
     from ..evaluate import EXTRA_RESOLUTIONS, MAIN_RESOLUTIONS, evaluate, report_markdown, write_report
     from ..explicit import ExplicitModel
     from .main import parse_resolutions
-
-    from ..bench import apply_gate_mode
 
     model = _load_any(scene)
     gate_used = apply_gate_mode(model, gate_mode)

@@ -6,7 +6,6 @@ import sys
 import numpy as np
 import pytest
 from click.testing import CliRunner
-
 from proxycodec.cli.main import cli
 
 
@@ -87,7 +86,6 @@ def test_sample_then_render_writes_pngs(tmp_path, xi):
 def test_fit_rejects_a_bad_predictor_shape_before_training(tmp_path):
     """Stage-2 options are checked up front (one line, exit 2), not when stage 2 starts half-way through a run."""
     from click.testing import CliRunner
-
     from proxycodec.cli.main import cli
 
     (tmp_path / "d").mkdir()
