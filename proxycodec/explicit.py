@@ -49,7 +49,16 @@ from .formats.inria_ply import GaussianPly, read_inria_ply, rgb_to_sh_dc, write_
 from .metrics import dssim, mse_to_psnr
 from .render import GateConfig, RenderResult, render_gaussians
 from .render.project import quat_to_rotmat
-from .train import RunSchedule, _Adam, _exp_lr, _fmt_time, _knn_scale, _TargetImages, timed_step
+from .train import (
+    RunSchedule,
+    _Adam,
+    _exp_lr,
+    _fmt_time,
+    _knn_scale,
+    _TargetImages,
+    check_run_length,
+    timed_step,
+)
 
 __all__ = [
     "NO_GATE",
@@ -155,14 +164,7 @@ class ExplicitConfig:
     log_every: float = 10.0  # seconds between progress lines
 
     def __post_init__(self) -> None:
-        if self.iters is None and self.time_budget is None:
-            raise ProxycodecError("give a number of iterations, a time budget, or both")
-        if self.iters is not None and int(self.iters) < 1:
-            raise ProxycodecError(f"iterations must be >= 1, got {self.iters}")
-        if self.time_budget is not None and not (self.time_budget > 0):
-            raise ProxycodecError(f"time budget must be positive, got {self.time_budget}")
-        if self.max_width is not None and int(self.max_width) < 8:
-            raise ProxycodecError(f"max width must be >= 8 pixels, got {self.max_width}")
+        check_run_length(self.iters, self.time_budget, self.max_width)
         if not (isinstance(self.sh_degree, int) and 0 <= self.sh_degree <= 3):
             raise ProxycodecError(f"SH degree must be 0..3, got {self.sh_degree!r}")
         if not (0.025 <= self.xi_min <= 1.0):

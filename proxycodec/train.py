@@ -59,6 +59,18 @@ FIT_KIND = "proxycodec.fit"
 
 
 # ================================================================================================ configuration
+def check_run_length(iters: int | None, time_budget: float | None, max_width: int | None) -> None:
+    """The options every trainer shares: a number of iterations and/or a time budget; a sane reference width."""
+    if iters is None and time_budget is None:
+        raise ProxycodecError("give a number of iterations, a time budget, or both")
+    if iters is not None and int(iters) < 1:
+        raise ProxycodecError(f"iterations must be >= 1, got {iters}")
+    if time_budget is not None and not (time_budget > 0):
+        raise ProxycodecError(f"time budget must be positive, got {time_budget}")
+    if max_width is not None and int(max_width) < 8:
+        raise ProxycodecError(f"max width must be >= 8 pixels, got {max_width}")
+
+
 @dataclass(frozen=True)
 class FitConfig:
     """Everything that determines a training run. Fractions are of the whole run (iterations or time budget)."""
@@ -135,16 +147,9 @@ class FitConfig:
     log_every: float = 10.0  # seconds between progress lines
 
     def __post_init__(self) -> None:
-        if self.iters is None and self.time_budget is None:
-            raise ProxycodecError("give a number of iterations, a time budget, or both")
-        if self.iters is not None and int(self.iters) < 1:
-            raise ProxycodecError(f"iterations must be >= 1, got {self.iters}")
-        if self.time_budget is not None and not (self.time_budget > 0):
-            raise ProxycodecError(f"time budget must be positive, got {self.time_budget}")
+        check_run_length(self.iters, self.time_budget, self.max_width)
         if not (0.025 <= self.xi_min <= self.xi_max <= 2.0):
             raise ProxycodecError(f"resolution range [{self.xi_min}, {self.xi_max}] must lie in [0.025, 2]")
-        if self.max_width is not None and int(self.max_width) < 8:
-            raise ProxycodecError(f"max width must be >= 8 pixels, got {self.max_width}")
         DecoderConfig(embedding=self.embedding)  # validates the name
         if not (0 < self.proxy_ratio <= 1) or not (0 < self.leaf_sample <= 1):
             raise ProxycodecError("proxy ratio and leaf sample fraction must be in (0, 1]")
