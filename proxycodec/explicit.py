@@ -313,14 +313,9 @@ class ExplicitTrainer(RunSchedule):
             self.params[k] = v.requires_grad_(True)
             self.opt.add(k, self.params[k])
         self._reset_stats()
-        self.iteration = 0
+        self._start_run()
         self.last_densify = 0
         self.last_reset = 0
-        self.elapsed = 0.0
-        self.view_stack: list[int] = []
-        self.history: list[dict] = []
-        self.ema_loss: float | None = None
-        self.ema_psnr: float | None = None
 
     @property
     def num_gaussians(self) -> int:
@@ -347,11 +342,6 @@ class ExplicitTrainer(RunSchedule):
                 "quats": c.lr_rotation}
 
     # ------------------------------------------------------------------ one iteration
-    def _next_view(self) -> int:
-        if not self.view_stack:
-            self.view_stack = [int(i) for i in self.rng.permutation(self.data.train_indices)]
-        return self.view_stack.pop()
-
     def render(self, camera, degree: int) -> RenderResult:
         """Render the live Gaussians (with gradients) from ``camera`` at its own size, no gate."""
         q = self.params

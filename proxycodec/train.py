@@ -421,6 +421,21 @@ class RunSchedule:
     """Where a run stands: ``cfg.iters`` and/or ``cfg.time_budget`` against ``iteration`` and ``elapsed`` (shared by
     the anchor and the explicit trainers)."""
 
+    def _start_run(self) -> None:
+        """The run state both trainers keep (and checkpoint, where they do)."""
+        self.iteration = 0
+        self.elapsed = 0.0
+        self.view_stack: list[int] = []
+        self.history: list[dict] = []
+        self.ema_loss: float | None = None
+        self.ema_psnr: float | None = None
+
+    def _next_view(self) -> int:
+        """Training views in random order, each once per epoch (``self.rng``)."""
+        if not self.view_stack:
+            self.view_stack = [int(i) for i in self.rng.permutation(self.data.train_indices)]
+        return self.view_stack.pop()
+
     def progress(self) -> float:
         c = self.cfg
         p = 0.0
@@ -477,14 +492,9 @@ class Trainer(RunSchedule):
         for k, p in self.decoder.named_parameters():
             self.opt.add(f"decoder.{k}", p)
         self._reset_stats()
-        self.iteration = 0
+        self._start_run()
         self.last_adjust = 0
-        self.elapsed = 0.0
         self.stage = 1
-        self.view_stack: list[int] = []
-        self.history: list[dict] = []
-        self.ema_loss = None
-        self.ema_psnr = None
 
     # ------------------------------------------------------------------ running statistics (Scaffold-GS)
     def _reset_stats(self) -> None:
@@ -515,11 +525,6 @@ class Trainer(RunSchedule):
         return self.cfg.lambda_recon[0] if p < self.cfg.recon_switch else self.cfg.lambda_recon[1]
 
     # ------------------------------------------------------------------ one iteration
-    def _next_view(self) -> int:
-        if not self.view_stack:
-            self.view_stack = [int(i) for i in self.rng.permutation(self.data.train_indices)]
-        return self.view_stack.pop()
-
     def _features_for(self, cam: Camera) -> tuple[torch.Tensor | None, torch.Tensor]:
         """Stage 2: the feature table with predicted features in the visible leaves' rows; and L_recon."""
         zero = torch.zeros(())
