@@ -11,26 +11,19 @@ import click
 from .main import cli, user_errors
 
 
-def _load_data(dataset: str, max_width: int | None, images: str, test_every: int):
+def _load_data(dataset: str, max_width: int | None, images: str, test_every: int, undistort: bool = True):
     from ..formats.datasets import dataset_kind, load_blender, load_colmap
 
     if dataset_kind(dataset) == "blender":
         return load_blender(dataset, max_width=max_width)
-    ctx = click.get_current_context(silent=True)
-    undistort = not (ctx is not None and ctx.meta.get(_NO_UNDISTORT_KEY, False))
     return load_colmap(dataset, images=images, max_width=max_width, test_every=test_every, undistort=undistort)
 
 
-_NO_UNDISTORT_KEY = "proxycodec.no_undistort"
-
-
-def _no_undistort_option(fn):
-    """``--no-undistort`` (fit, eval): recorded in the click context's ``meta`` and read by :func:`_load_data`."""
-    return click.option(
-        "--no-undistort", is_flag=True, expose_value=False,
-        callback=lambda ctx, _param, value: ctx.meta.__setitem__(_NO_UNDISTORT_KEY, bool(value)),
-        help="COLMAP: refuse cameras with lens distortion instead of undistorting their images to a pinhole "
-             "camera at load time (SIMPLE_RADIAL, RADIAL, OPENCV, FULL_OPENCV).")(fn)
+#: ``--no-undistort`` (fit, eval), passed on to :func:`_load_data`.
+_no_undistort_option = click.option(
+    "--no-undistort", is_flag=True,
+    help="COLMAP: refuse cameras with lens distortion instead of undistorting their images to a pinhole camera at "
+         "load time (SIMPLE_RADIAL, RADIAL, OPENCV, FULL_OPENCV).")
 
 
 @cli.command()
@@ -86,8 +79,8 @@ def _no_undistort_option(fn):
 @user_errors
 def fit(dataset, out, iters, time_budget, max_width, seed, no_gate, embedding, fixed_res, no_proxies, proxy_ratio,
         predictor_hidden, predictor_blocks, predictor_warmup, recon_loss,
-        lambda_recon_fixed, predictor_kind, gate_kappa, gate_eta, voxel_size, init_points, images, test_every, resume,
-        checkpoint_every, keep_checkpoint, backend, explicit, sh_degree) -> None:
+        lambda_recon_fixed, predictor_kind, gate_kappa, gate_eta, voxel_size, init_points, images, test_every,
+        no_undistort, resume, checkpoint_every, keep_checkpoint, backend, explicit, sh_degree) -> None:
     """Train an anchor scene on DATASET (Blender or COLMAP folder, detected by its files) and write OUT
     (with --explicit: the plain 3DGS baseline, an INRIA PLY)."""
     from ..train import FitConfig
@@ -96,8 +89,8 @@ def fit(dataset, out, iters, time_budget, max_width, seed, no_gate, embedding, f
     if iters is None and time_budget is None:
         iters = 3000
     if explicit:
-        _fit_explicit(dataset, out, iters, time_budget, max_width, seed, init_points, images, test_every, resume,
-                      backend, sh_degree)
+        _fit_explicit(dataset, out, iters, time_budget, max_width, seed, init_points, images, test_every,
+                      not no_undistort, resume, backend, sh_degree)
         return
     if init_points is None:
         init_points = 5_000
@@ -108,15 +101,15 @@ def fit(dataset, out, iters, time_budget, max_width, seed, no_gate, embedding, f
                     gate_kappa=gate_kappa, gate_eta=gate_eta, proxy_ratio=proxy_ratio,
                     predictor_hidden=predictor_hidden, predictor_blocks=predictor_blocks,
                     predictor_warmup=predictor_warmup)
-    data = _load_data(dataset, max_width, images, test_every)
+    data = _load_data(dataset, max_width, images, test_every, not no_undistort)
     res = run_fit(data, out, cfg, dataset_root=str(Path(dataset).resolve()), resume=resume,
                   keep_checkpoint=keep_checkpoint)
     click.echo(f"wrote {out} ({res.model.scene.num_anchors} anchors, {res.iterations} iterations, "
                f"{res.seconds:.0f} s)")
 
 
-def _fit_explicit(dataset, out, iters, time_budget, max_width, seed, init_points, images, test_every, resume,
-                  backend, sh_degree) -> None:
+def _fit_explicit(dataset, out, iters, time_budget, max_width, seed, init_points, images, test_every, undistort,
+                  resume, backend, sh_degree) -> None:
     """``fit --explicit``: the plain 3DGS baseline (``proxycodec.explicit``)."""
     import torch
 
@@ -129,7 +122,7 @@ def _fit_explicit(dataset, out, iters, time_budget, max_width, seed, init_points
     cfg = ExplicitConfig(iters=iters, time_budget=time_budget, seed=seed, max_width=max_width, sh_degree=sh_degree,
                          backend=backend, **kw)
     torch.set_num_threads(2)
-    data = _load_data(dataset, max_width, images, test_every)
+    data = _load_data(dataset, max_width, images, test_every, undistort)
     tr = run_explicit(data, cfg, lambda s: click.echo(s, err=True), out=out)
     click.echo(f"wrote {out} ({tr.num_gaussians} Gaussians, SH degree {sh_degree}, {tr.iteration} iterations, "
                f"{tr.elapsed:.0f} s, {Path(out).stat().st_size:,} B)")
@@ -173,7 +166,8 @@ def _load_any(path):
               help="Coverage gate when rendering: the model's own setting, or forced on (post-hoc gating of a "
                    "model trained with --no-gate, with its stored kappa/eta) or off.")
 @user_errors
-def eval_cmd(scene, dataset, out_dir, max_width, res, n_views, images, test_every, backend, gate_mode) -> None:
+def eval_cmd(scene, dataset, out_dir, max_width, res, n_views, images, test_every, no_undistort, backend,
+             gate_mode) -> None:
     """Evaluate SCENE on DATASET's test views at many resolutions: PSNR/SSIM/time/Gaussians, JSON + markdown +
     plot + side-by-side crops."""
     from ..bench import apply_gate_mode
@@ -188,7 +182,7 @@ def eval_cmd(scene, dataset, out_dir, max_width, res, n_views, images, test_ever
     fit_meta = meta.get("fit", {}) if isinstance(meta.get("fit"), dict) else {}
     if max_width is None:
         max_width = (fit_meta.get("config") or {}).get("max_width")
-    data = _load_data(dataset, max_width, images, test_every)
+    data = _load_data(dataset, max_width, images, test_every, not no_undistort)
     if isinstance(model, ExplicitModel):  # a PLY carries no background: the dataset's, as in training
         model.background = tuple(data.background)
     resolutions = parse_resolutions(res) if res else list(MAIN_RESOLUTIONS + EXTRA_RESOLUTIONS)
