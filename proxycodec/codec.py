@@ -23,9 +23,9 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
-from .camera import Camera, orbit_cameras  # noqa: F401
+from .camera import Camera
 from .camera import default_cameras as camera_defaults
-from .decoder import DecoderConfig, GaussianDecoder  # noqa: F401
+from .decoder import GaussianDecoder
 from .errors import ProxycodecError
 from .formats.container import (
     MAGIC, ContainerError, SectionInfo, read_container, read_header, write_container,
@@ -36,11 +36,10 @@ from .proxy import (
     select_proxies, torch_threads, train_predictor,
 )
 from .scene import AnchorScene
-# The decoder's reading of the sections is torch-free and shared with proxycodec.lite (SCENE_KIND, FLOAT_BITS,
-# _dequantize... are defined there and used here under the same names).
-from .sections import (  # noqa: F401
-    FLOAT_BITS, MAX_ANCHORS, PREDICT_CHUNK, QSCALE, SCENE_FORMAT, SCENE_KIND, SUPPORTED_SCENE_FORMATS, _dequantize,
-    _grid_to_xyz, _section, _weights_from_sections, guarded, read_scene_container, scene_extras, stored_anchors,
+# The decoder's reading of the sections is torch-free and shared with proxycodec.lite.
+from .sections import (
+    FLOAT_BITS, MAX_ANCHORS, PREDICT_CHUNK, QSCALE, SCENE_FORMAT, SCENE_KIND, _dequantize, _grid_to_xyz,
+    _weights_from_sections, guarded, read_scene_container, scene_extras, stored_anchors,
 )
 
 __all__ = ["EncodeConfig", "EncodeReport", "CompressedScene", "encode", "decode", "load", "stats", "render",
@@ -464,7 +463,6 @@ def _zero_dead_offsets(q_off: np.ndarray, qp: dict, dead: np.ndarray) -> np.ndar
         with np.errstate(divide="ignore", invalid="ignore"):
             zero = np.where(scale > 0, np.round(-off / np.where(scale > 0, scale, 1)), 0)
         zero = np.clip(zero, 0, (1 << int(qp["bits"])) - 1).astype(q.dtype)
-    M, K = dead.shape
     rows = np.repeat(dead.T, 3, axis=0)  # [3K, M]: channel k*3 + c belongs to slot k
     q[rows] = np.broadcast_to(zero[:, None], q.shape)[rows]
     return q
