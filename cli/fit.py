@@ -12,11 +12,9 @@ from .main import cli, user_errors
 
 
 def _load_data(dataset: str, max_width: int | None, images: str, test_every: int, undistort: bool = True):
-    from ..formats.datasets import dataset_kind, load_blender, load_colmap
+    from ..formats.datasets import load_dataset
 
-    if dataset_kind(dataset) == "blender":
-        return load_blender(dataset, max_width=max_width)
-    return load_colmap(dataset, images=images, max_width=max_width, test_every=test_every, undistort=undistort)
+    return load_dataset(dataset, max_width=max_width, images=images, test_every=test_every, undistort=undistort)
 
 
 #: ``--no-undistort`` (fit, eval), passed on to :func:`_load_data`.

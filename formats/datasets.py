@@ -35,8 +35,12 @@ def dataset_kind(root: str | os.PathLike) -> str:
     return "colmap"
 
 
-def load_dataset(root: str | os.PathLike, *, max_width: int | None = None, **kwargs) -> PosedImages:
-    """Load a Blender or COLMAP scene folder (see :func:`dataset_kind`); ``kwargs`` go to the loader."""
+def load_dataset(root: str | os.PathLike, *, max_width: int | None = None, images: str = "images",
+                 test_every: int = 8, undistort: bool = True, **kwargs) -> PosedImages:
+    """Load a Blender or COLMAP scene folder (see :func:`dataset_kind`). ``images``, ``test_every`` and
+    ``undistort`` are COLMAP's (a Blender scene has its own split and pinhole cameras); ``kwargs`` go to either
+    loader."""
     if dataset_kind(root) == "blender":
         return load_blender(root, max_width=max_width, **kwargs)
-    return load_colmap(root, max_width=max_width, **kwargs)
+    return load_colmap(root, max_width=max_width, images=images, test_every=test_every, undistort=undistort,
+                       **kwargs)

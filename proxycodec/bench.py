@@ -123,14 +123,6 @@ def versions() -> dict:
     return v
 
 
-def load_data(dataset: str, max_width: int | None, test_every: int = 8):
-    from .formats.datasets import dataset_kind, load_blender, load_colmap
-
-    if dataset_kind(dataset) == "blender":
-        return load_blender(dataset, max_width=max_width)
-    return load_colmap(dataset, max_width=max_width, test_every=test_every)
-
-
 @dataclass(frozen=True)
 class EvalSpec:
     """How points of one scene are evaluated: the dataset, its 100% reference width, the COLMAP test split and the
@@ -156,9 +148,10 @@ def _rss_mb(who=None) -> float:
 
 
 def _step_fit(a: dict) -> dict:
+    from .formats.datasets import load_dataset
     from .train import FitConfig, checkpoint_path_for, fit
 
-    data = load_data(a["dataset"], a["max_width"], a.get("test_every", 8))
+    data = load_dataset(a["dataset"], max_width=a["max_width"], test_every=a.get("test_every", 8))
     cfg = FitConfig(**{**a["config"], "max_width": a["max_width"]})
     out = Path(a["out"])
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -183,7 +176,9 @@ def _step_explicit(a: dict) -> dict:
     from .explicit import ExplicitConfig, run_explicit
 
     torch.set_num_threads(2)
-    data = load_data(a["dataset"], a["max_width"], a.get("test_every", 8))
+    from .formats.datasets import load_dataset
+
+    data = load_dataset(a["dataset"], max_width=a["max_width"], test_every=a.get("test_every", 8))
     cfg = ExplicitConfig(**{**a["config"], "max_width": a["max_width"]})
     Path(a["out"]).parent.mkdir(parents=True, exist_ok=True)
     tr = run_explicit(data, cfg, lambda s: print(s, file=sys.stderr, flush=True), out=a["out"])
@@ -240,7 +235,9 @@ def _step_eval(a: dict) -> dict:
     out["gate"] = apply_gate_mode(model, a.get("gate", "model"))
     if int(a["views"]) <= 0:
         return out
-    data = load_data(a["dataset"], a["max_width"], a.get("test_every", 8))
+    from .formats.datasets import load_dataset
+
+    data = load_dataset(a["dataset"], max_width=a["max_width"], test_every=a.get("test_every", 8))
     if isinstance(model, ExplicitModel):
         model.background = tuple(data.background)
     views = list(data.test_indices)[:int(a["views"])]
