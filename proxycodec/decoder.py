@@ -12,19 +12,17 @@ color MLPs only run for anchors with at least one Gaussian of positive opacity.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 from torch import nn
 
-from .errors import ProxycodecError  # noqa: F401
+from .netconfig import DecoderConfig  # defined torch-free (proxycodec.lite reads it too)
 from .weights import load_state_arrays, state_arrays
-from .netconfig import EMBEDDINGS, DecoderConfig  # noqa: F401  (re-exported: defined torch-free)
-from .render.project import GateConfig  # noqa: F401
+
 
 @dataclass
 class NeuralGaussians:
