@@ -30,28 +30,13 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-# The kernels and their numpy driver live in a torch-free module (the torch-free decode path calls them directly);
-# their names are re-exported here, where the tests and benchmarks reach for them.
-from ._raster_kernels import (  # noqa: F401
+# The kernels and their numpy driver live in a torch-free module (the torch-free decode path calls them directly).
+from ._raster_kernels import (
     _NG,
-    _NGEO,
-    _SMALL_WORK,
-    _TP,
-    TILE,
     _backward,
-    _bin_count,
-    _bin_fill,
-    _bin_sort,
     _Binned,
-    _forward,
-    _n_chunks,
     _per_tile,
-    _radix_argsort,
     _reduce,
-    _row_span,
-    _rows,
-    _stop_threshold,
-    _tile_hit,
     bin_gaussians,
     depth_order,
     rasterize_forward,
