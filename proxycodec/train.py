@@ -38,6 +38,7 @@ from .decoder import DecoderConfig, GaussianDecoder, visible_anchors
 from .errors import ProxycodecError
 from .metrics import dssim, mse_to_psnr
 from .model import SceneModel, render_scene, weights_path_for
+from .netconfig import PredictorConfig
 from .render.project import GateConfig
 from .scene import AnchorScene
 
@@ -153,9 +154,9 @@ class FitConfig:
         DecoderConfig(embedding=self.embedding)  # validates the name
         if not (0 < self.proxy_ratio <= 1) or not (0 < self.leaf_sample <= 1):
             raise ProxycodecError("proxy ratio and leaf sample fraction must be in (0, 1]")
-        if not (1 <= self.predictor_hidden <= 4096 and 0 <= self.predictor_blocks <= 64 and self.predictor_warmup >= 0):
-            raise ProxycodecError("predictor width must be 1..4096, depth 0..64 blocks and warm-up >= 0 iterations, got "
-                                  f"{self.predictor_hidden}, {self.predictor_blocks}, {self.predictor_warmup}")
+        PredictorConfig(hidden=self.predictor_hidden, n_blocks=self.predictor_blocks)  # validates width and depth
+        if self.predictor_warmup < 0:
+            raise ProxycodecError(f"predictor warm-up must be >= 0 iterations, got {self.predictor_warmup}")
         from .proxy import PREDICTOR_KINDS, RECON_LOSSES
 
         if self.recon_loss not in RECON_LOSSES:
