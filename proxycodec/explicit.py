@@ -57,6 +57,7 @@ from .train import (
     _knn_scale,
     _TargetImages,
     check_run_length,
+    initial_points,
     timed_step,
 )
 
@@ -252,24 +253,12 @@ def cameras_extent(cameras) -> float:
 
 def initial_gaussians(data, cfg: ExplicitConfig, rng: np.random.Generator) -> dict[str, torch.Tensor]:
     """3DGS's ``create_from_pcd`` on SfM points (with colours) or random points in the dataset bounds (grey)."""
-    bounds = np.asarray(data.bounds, dtype=np.float64)
-    extent = float((bounds[1] - bounds[0]).max())
-    if extent <= 0 or not math.isfinite(extent):
-        raise ProxycodecError("dataset bounds are empty; cannot place initial Gaussians")
-    pts = data.points
-    colors = None
-    if pts is not None and len(pts) >= 8:
-        pts = np.asarray(pts, dtype=np.float64)
-        inside = ((pts >= bounds[0] - 0.5 * extent) & (pts <= bounds[1] + 0.5 * extent)).all(1)
-        if data.point_colors is not None:
-            colors = np.asarray(data.point_colors, dtype=np.float64)[inside] / 255.0
-        pts = pts[inside]
-        if len(pts) > cfg.max_init_points:
-            idx = np.sort(rng.choice(len(pts), cfg.max_init_points, replace=False))
-            pts = pts[idx]
-            colors = colors[idx] if colors is not None else None
-    else:  # Blender: random points in the bounds (3DGS's random init for NeRF-Synthetic)
-        pts = bounds[0] + rng.random((cfg.init_points, 3)) * (bounds[1] - bounds[0])
+    pts, colors, _, _ = initial_points(data, cfg.init_points, rng, "Gaussians")
+    colors = None if colors is None else colors / 255.0
+    if data.points is not None and len(data.points) >= 8 and len(pts) > cfg.max_init_points:
+        idx = np.sort(rng.choice(len(pts), cfg.max_init_points, replace=False))
+        pts = pts[idx]
+        colors = colors[idx] if colors is not None else None
     if len(pts) == 0:
         raise ProxycodecError("no initial points")
     n = len(pts)

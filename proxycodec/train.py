@@ -334,20 +334,28 @@ def _knn_scale(points: np.ndarray) -> np.ndarray:
     return np.sqrt(np.maximum(d2, 1e-7))
 
 
-def initial_anchors(data, cfg: FitConfig, rng: np.random.Generator) -> tuple[np.ndarray, float, np.ndarray, float]:
-    """-> (anchor positions [M, 3], voxel size, scene centre [3], scene radius) from the dataset."""
+def initial_points(data, n_random: int, rng: np.random.Generator, what: str
+                   ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, float]:
+    """-> (points [N, 3] float64, their SfM colours [N, 3] 0..255 or None, bounds [2, 3], extent): the dataset's SfM
+    points within half an extent of its bounds, or (Blender, no SfM points) ``n_random`` uniform points in the
+    bounds, 3DGS/Scaffold-GS's random init for NeRF-Synthetic. Shared by the anchor and the explicit trainers."""
     bounds = np.asarray(data.bounds, dtype=np.float64)
     extent = float((bounds[1] - bounds[0]).max())
     if extent <= 0 or not math.isfinite(extent):
-        raise ProxycodecError("dataset bounds are empty; cannot place initial anchors")
-    voxel = cfg.voxel_size if cfg.voxel_size > 0 else extent / cfg.voxel_divisions
+        raise ProxycodecError(f"dataset bounds are empty; cannot place initial {what}")
     pts = data.points
     if pts is not None and len(pts) >= 8:
         pts = np.asarray(pts, dtype=np.float64)
         inside = ((pts >= bounds[0] - 0.5 * extent) & (pts <= bounds[1] + 0.5 * extent)).all(1)
-        pts = pts[inside]
-    else:  # Blender: random points in the bounds (3DGS/Scaffold-GS's random init for NeRF-Synthetic)
-        pts = bounds[0] + rng.random((cfg.init_points, 3)) * (bounds[1] - bounds[0])
+        colors = None if data.point_colors is None else np.asarray(data.point_colors, dtype=np.float64)[inside]
+        return pts[inside], colors, bounds, extent
+    return bounds[0] + rng.random((n_random, 3)) * (bounds[1] - bounds[0]), None, bounds, extent
+
+
+def initial_anchors(data, cfg: FitConfig, rng: np.random.Generator) -> tuple[np.ndarray, float, np.ndarray, float]:
+    """-> (anchor positions [M, 3], voxel size, scene centre [3], scene radius) from the dataset."""
+    pts, _, bounds, extent = initial_points(data, cfg.init_points, rng, "anchors")
+    voxel = cfg.voxel_size if cfg.voxel_size > 0 else extent / cfg.voxel_divisions
     anchors = _voxelise(pts, voxel)
     if len(anchors) > cfg.max_init_anchors:
         anchors = anchors[np.sort(rng.choice(len(anchors), cfg.max_init_anchors, replace=False))]
