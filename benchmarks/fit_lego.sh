@@ -11,7 +11,8 @@ DATA=${DATA:-$(cd "$(dirname "$0")/../.." && pwd)/shared/data/nerf_synthetic/leg
 mkdir -p "$OUT"
 run() {  # name, extra fit options...
   local name=$1; shift
-  proxycodec fit "$DATA" --max-width 400 --time-budget "$BUDGET" -o "$OUT/$name.ply" "$@" > "$OUT/$name.fit.log" 2>&1
+  proxycodec fit "$DATA" --max-width 400 ${BUDGET_ARGS:---time-budget $BUDGET} -o "$OUT/$name.ply" "$@" \
+    > "$OUT/$name.fit.log" 2>&1
   proxycodec eval "$OUT/$name.ply" "$DATA" -o "$OUT/${name}_eval" > "$OUT/$name.eval.log" 2>&1
   python - "$OUT/${name}_eval/eval.json" "$name" <<'PY'
 import json, sys
@@ -20,5 +21,9 @@ print(f"{sys.argv[2]:12s} avg PSNR {s['psnr_avg']:.3f}  SSIM {s['ssim_avg']:.4f}
 PY
 }
 run full
-run noproxy --no-proxies
+# The proxies' cost is judged against the same run without them: same seed, same iteration count (stage 1 is then
+# identical, bit for bit), so the no-proxy run takes the full run's iterations instead of the time budget.
+ITERS=$(sed -n 's/.*anchors, \([0-9]*\) iterations.*/\1/p' "$OUT/full.fit.log" | tail -n 1)
+run_iters() { local name=$1; shift; BUDGET_ARGS="--iters $ITERS" run "$name" "$@"; }
+run_iters noproxy --no-proxies
 run plain --fixed-res --no-gate --embedding none --no-proxies

@@ -61,6 +61,8 @@ ABLATIONS = [
      "[S Table 6] NeRF-Syn 31.184 vs 31.056; Mip360 28.009 vs 28.183", 31.184 - 31.056),
     ("L_recon L1", {"recon_loss": "l1"}, "model",
      "[S Table 6] NeRF-Syn 29.931 vs 31.056; Mip360 27.391 vs 28.183", 29.931 - 31.056),
+    ("lambda_recon paper schedule (0.1, then 0.01 from 2/3; our default is 0)", {"lambda_recon_fixed": None},
+     "model", "[S Table 10] the paper's default", None),
     ("lambda_recon fixed 0.1", {"lambda_recon_fixed": 0.1}, "model",
      "[S Table 10] NeRF-Syn 31.007 vs 31.056; T&T 24.451 vs 24.600", 31.007 - 31.056),
     ("lambda_recon fixed 0.01", {"lambda_recon_fixed": 0.01}, "model",

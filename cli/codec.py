@@ -32,8 +32,9 @@ def _stderr(msg: str) -> None:
               help="MLP weights precision (q8: int8 matrices with per-row scales).")
 @click.option("--max-cameras", default=16, show_default=True, type=int,
               help="Default cameras kept in the container (evenly spaced).")
-@click.option("--predict-offsets/--store-offsets", default=False, show_default=True,
-              help="Predict leaf offsets too instead of storing them.")
+@click.option("--predict-offsets/--store-offsets", default=None,
+              help="Predict leaf offsets too instead of storing them [default: as the scene's stage-2 predictor "
+                   "(fit --predict-offsets), else store].")
 @click.option("--drop-dead-offsets/--keep-dead-offsets", default=False, show_default=True,
               help="Store the offsets of neural Gaussians that are never drawn as 0 (-1.5% bytes, ~9x encode time).")
 @click.option("--predictor-iters", default=2000, show_default=True, type=int)

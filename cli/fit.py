@@ -44,11 +44,19 @@ _no_undistort_option = click.option(
               help="Stage 2: residual predictor depth (residual blocks).")
 @click.option("--predictor-warmup", type=int, default=300, show_default=True,
               help="Stage 2: L_recon-only predictor iterations at the stage switch.")
+@click.option("--predictor-context", type=int, default=1, show_default=True,
+              help="Stage 2: proxies the residual predictor sees per leaf (1: the nearest, as in the paper; more: the "
+                   "next nearest as context).")
+@click.option("--predict-offsets/--store-offsets", default=False, show_default=True,
+              help="Stage 2: the predictor regenerates the leaves' offsets too (rendered with them, so the container "
+                   "stores proxy offsets only).")
+@click.option("--stage2-start", type=click.FloatRange(0.05, 1.0), default=0.5, show_default=True,
+              help="Fraction of the run at which the anchor set freezes and stage 2 (proxies) begins.")
 @click.option("--recon-loss", type=click.Choice(["mse+cos", "mse", "l1"]), default="mse+cos", show_default=True,
               help="Ablation: L_recon of the leaf predictor (supplement Table 6).")
-@click.option("--lambda-recon-fixed", type=float, default=None,
-              help="Ablation: constant lambda_recon (the paper's fixed 0.1 or 0.01) instead of 0.1 then 0.01 from "
-                   "2/3 of the run (supplement Table 10).")
+@click.option("--lambda-recon", "lambda_recon", default="0", show_default=True,
+              help="Weight of L_recon in joint stage 2 (after the predictor warm-up): a constant, or 'paper' for "
+                   "0.1 then 0.01 from 2/3 of the run (supplement Table 10). 0 measured best on lego (SPEC.md 5).")
 @click.option("--predictor", "predictor_kind", type=click.Choice(["residual", "proxy-leaf-mlp"]), default="residual",
               show_default=True, help="Ablation: leaf predictor; proxy-leaf-mlp is the supplement's Proxy&Leaf (MLP) "
                                       "baseline (Table 5), fit/eval only (encode refits a residual predictor).")
@@ -76,8 +84,8 @@ _no_undistort_option = click.option(
               help="With --explicit: spherical-harmonics degree of the Gaussians' colours.")
 @user_errors
 def fit(dataset, out, iters, time_budget, max_width, seed, no_gate, embedding, fixed_res, no_proxies, proxy_ratio,
-        predictor_hidden, predictor_blocks, predictor_warmup, recon_loss,
-        lambda_recon_fixed, predictor_kind, gate_kappa, gate_eta, voxel_size, init_points, images, test_every,
+        predictor_hidden, predictor_blocks, predictor_warmup, predictor_context, predict_offsets, stage2_start, recon_loss,
+        lambda_recon, predictor_kind, gate_kappa, gate_eta, voxel_size, init_points, images, test_every,
         no_undistort, resume, checkpoint_every, keep_checkpoint, backend, explicit, sh_degree) -> None:
     """Train an anchor scene on DATASET (Blender or COLMAP folder, detected by its files) and write OUT
     (with --explicit: the plain 3DGS baseline, an INRIA PLY)."""
@@ -92,13 +100,23 @@ def fit(dataset, out, iters, time_budget, max_width, seed, no_gate, embedding, f
         return
     if init_points is None:
         init_points = 5_000
+    if lambda_recon.strip().lower() == "paper":
+        lambda_recon_fixed = None
+    else:
+        try:
+            lambda_recon_fixed = float(lambda_recon)
+        except ValueError:
+            raise click.BadParameter(f"expected a number or 'paper', got {lambda_recon!r}",
+                                     param_hint="--lambda-recon") from None
     cfg = FitConfig(iters=iters, time_budget=time_budget, seed=seed, max_width=max_width, gate=not no_gate,
                     embedding=embedding, fixed_res=fixed_res, proxies=not no_proxies, voxel_size=voxel_size,
                     init_points=init_points, checkpoint_every=checkpoint_every, backend=backend,
                     recon_loss=recon_loss, lambda_recon_fixed=lambda_recon_fixed, predictor=predictor_kind,
                     gate_kappa=gate_kappa, gate_eta=gate_eta, proxy_ratio=proxy_ratio,
                     predictor_hidden=predictor_hidden, predictor_blocks=predictor_blocks,
-                    predictor_warmup=predictor_warmup)
+                    predictor_warmup=predictor_warmup, predictor_context=predictor_context,
+                    predict_offsets=predict_offsets,
+                    stage2_start=stage2_start, update_until=stage2_start)
     data = _load_data(dataset, max_width, images, test_every, not no_undistort)
     res = run_fit(data, out, cfg, dataset_root=str(Path(dataset).resolve()), resume=resume,
                   keep_checkpoint=keep_checkpoint)

@@ -32,14 +32,14 @@ from .formats.container import (
 )
 from .model import SceneModel, SceneRender, weights_path_for
 from .proxy import (
-    PredictorConfig, ResidualPredictor, TrainConfig, TrainResult, default_cell_size, nearest_proxy,
+    PredictorConfig, ResidualPredictor, TrainConfig, TrainResult, default_cell_size, nearest_proxies,
     select_proxies, torch_threads, train_predictor,
 )
 from .scene import AnchorScene
 # The decoder's reading of the sections is torch-free and shared with proxycodec.lite.
 from .sections import (
     FLOAT_BITS, MAX_ANCHORS, PREDICT_CHUNK, QSCALE, SCENE_FORMAT, SCENE_KIND, _dequantize, _grid_to_xyz,
-    _weights_from_sections, guarded, read_scene_container, scene_extras, stored_anchors,
+    _weights_from_sections, guarded, pack_weights, read_scene_container, scene_extras, stored_anchors,
 )
 
 __all__ = ["EncodeConfig", "EncodeReport", "CompressedScene", "encode", "decode", "load", "stats", "render",
@@ -61,9 +61,12 @@ class EncodeConfig:
     scaling_bits: int = 8
     weights_dtype: str = "q8"  # MLP weights: "f16" | "f32" | "q8" (int8 matrices with per-row scales)
     max_cameras: int = 16  # default cameras kept in the container (evenly spaced over the model's cameras)
-    predict_offsets: bool = False  # False: every anchor's offsets are stored; True: leaves' are predicted
+    # True: leaves' offsets are predicted; False: every anchor's are stored; None: as the scene's stage-2 predictor
+    # does when it is used (``fit --predict-offsets``), else stored
+    predict_offsets: bool | None = None
     predictor_hidden: int = 64
     predictor_blocks: int = 2
+    predictor_context: int = 1  # proxies the (refitted) predictor sees per leaf
     predictor_iters: int = 2000
     predictor_lr: float = 2e-3
     leaf_sample: float = 0.2  # fraction of the leaves per predictor iteration [S Fig. 12]
@@ -318,10 +321,17 @@ def encode(
             raise ProxycodecError(f"the stage-2 proxy mask has shape {fitted_mask.shape}, expected ({M},)")
         mask = np.asarray(fitted_mask, dtype=bool)[order]
         predictor = fitted_pred
-        cfg = replace(cfg, predictor_iters=0)  # jointly trained with the renderer: used as is, not refitted
+        fitted_po = bool(fitted_pred.config.predict_offsets)
+        if cfg.predict_offsets is not None and cfg.predict_offsets != fitted_po:
+            raise ProxycodecError("the scene's stage-2 predictor " + ("predicts" if fitted_po else "does not predict")
+                                  + " the leaves' offsets; drop the offsets option or refit the predictor")
+        # jointly trained with the renderer: used as is, not refitted
+        cfg = replace(cfg, predictor_iters=0, predict_offsets=fitted_po)
         say("using the stage-2 proxies and predictor from the weights file (no refit)")
     else:
         mask = select_proxies(pos_sorted, cell_size, cfg.proxy_ratio, cfg.seed)
+    if cfg.predict_offsets is None:
+        cfg = replace(cfg, predict_offsets=False)
     P = int(mask.sum())
     say(f"{M} anchors: {P} proxies, {M - P} leaves (cell {cell_size:g} = {cell_size / voxel:g} voxels)")
 
@@ -342,7 +352,8 @@ def encode(
 
     # 4. predictor, fitted on the leaves against the dequantised proxies (what the decoder will see)
     pcfg = PredictorConfig(feat_dim=Fd, n_offsets=K, predict_offsets=cfg.predict_offsets,
-                           hidden=cfg.predictor_hidden, n_blocks=cfg.predictor_blocks, dist_ref=voxel)
+                           hidden=cfg.predictor_hidden, n_blocks=cfg.predictor_blocks, dist_ref=voxel,
+                           context=cfg.predictor_context)
     if predictor is not None:
         pc = predictor.config
         if (pc.feat_dim, pc.n_offsets, pc.predict_offsets) != (Fd, K, cfg.predict_offsets):
@@ -353,7 +364,7 @@ def encode(
     else:
         torch.manual_seed(cfg.seed)
         pred = ResidualPredictor(pcfg)
-    nearest = nearest_proxy(pos_sorted, mask)
+    nearest = nearest_proxies(pos_sorted, mask, pcfg.context)
     tcfg = TrainConfig(iters=cfg.predictor_iters, lr=cfg.predictor_lr, lr_final=cfg.predictor_lr / 10,
                        sample_frac=cfg.leaf_sample, seed=cfg.seed)
     t_train = time.perf_counter()
@@ -412,7 +423,8 @@ def encode(
             decoded = _model_from_sections(meta, sections, err)
         meta["offsets_dead"] = {"slots": int(dead.sum()), "of": int(dead.size), "threshold": cfg.dead_threshold}
         say(f"{int(dead.sum())} of {dead.size} neural Gaussians are never drawn: their offsets are stored as 0")
-    file_bytes = write_container(out, meta, sections, level=cfg.zstd_level)
+    packed, meta["weights_layout"] = pack_weights(sections)
+    file_bytes = write_container(out, meta, packed, level=cfg.zstd_level)
     _, _, infos, _ = read_header(out)
     say(f"wrote {out}: {file_bytes:,} B" + (f" ({source_bytes / file_bytes:.1f}x smaller than PLY + weights)"
                                            if source_bytes else ""))
@@ -535,7 +547,7 @@ def _model_from_sections_unchecked(meta: dict, sections: dict[str, np.ndarray], 
     pos_t, feat_t, off_t = torch.from_numpy(pos), torch.from_numpy(a.features), torch.from_numpy(a.offsets)
     leaves = torch.from_numpy(np.flatnonzero(~mask))
     if leaves.numel():
-        nearest = torch.from_numpy(nearest_proxy(pos, mask))
+        nearest = torch.from_numpy(nearest_proxies(pos, mask, pcfg.context))
         with torch.no_grad(), torch_threads(1):  # fixed thread count: the same bits in encoder and decoder
             for s in range(0, leaves.numel(), PREDICT_CHUNK):
                 lv = leaves[s:s + PREDICT_CHUNK]

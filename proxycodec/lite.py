@@ -37,7 +37,7 @@ import numpy as np
 from .camera import Camera, check_xi
 from .camera import default_cameras as _default_cameras
 from .formats.container import ContainerError
-from .nearest import nearest_proxy
+from .nearest import nearest_proxies
 from .netconfig import DecoderConfig, PredictorConfig
 from .render._project_kernels import constants, project_forward
 from .render._raster_kernels import rasterize_forward
@@ -168,9 +168,14 @@ class Predictor:
     def predict(self, positions, features, nearest, leaves, offsets=None):
         """``ResidualPredictor.predict``: (features [L, F], offsets [L, K, 3] or None) of the anchors ``leaves``."""
         cfg = self.config
-        k = nearest[leaves]
+        near = nearest[:, None] if nearest.ndim == 1 else nearest
+        kk = near[leaves]
+        k = kk[:, 0]
         pf = features[k]
-        x = _relu(_linear(np.concatenate([pf, self.inputs(positions[leaves], positions[k])], -1), self.encoder))
+        parts = [pf, self.inputs(positions[leaves], positions[k])]
+        for j in range(1, cfg.context):  # ``proxy.predictor_geometry``
+            parts += [features[kk[:, j]] - pf, self.inputs(positions[leaves], positions[kk[:, j]])]
+        x = _relu(_linear(np.concatenate(parts, -1), self.encoder))
         for fc1, fc2 in self.blocks:
             x = x + _linear(_relu(_linear(x, fc1)), fc2)
         out = _linear(x, self.head)
@@ -374,7 +379,7 @@ def _scene_from_sections(meta: dict, sections: dict[str, np.ndarray], err) -> Li
     pos, feats, offs, mask = a.positions, a.features, a.offsets, a.proxy_mask
     leaves = np.flatnonzero(~mask)
     if leaves.size:
-        nearest = nearest_proxy(pos, mask)
+        nearest = nearest_proxies(pos, mask, a.predictor_config.context)
         for s in range(0, leaves.size, PREDICT_CHUNK):
             lv = leaves[s:s + PREDICT_CHUNK]
             f_pred, o_pred = predictor.predict(pos, feats, nearest, lv, offs)

@@ -37,16 +37,18 @@ class SceneRender(RenderResult):
 
 
 def decode_view(scene: AnchorScene, decoder: GaussianDecoder, camera: Camera, xi: float,
-                features: torch.Tensor | None = None) -> tuple[NeuralGaussians, torch.Tensor]:
+                features: torch.Tensor | None = None,
+                offsets: torch.Tensor | None = None) -> tuple[NeuralGaussians, torch.Tensor]:
     """Neural Gaussians of the anchors visible from ``camera`` (already at its render resolution).
 
-    ``features`` overrides the scene's features (stage 2 renders leaves with predicted ones). Returns the Gaussians
+    ``features`` (``offsets``) override the scene's (stage 2 renders leaves with predicted ones). Returns the Gaussians
     (``anchor_index`` into the full scene) and the visible anchor indices.
     """
     vis = visible_anchors(scene.positions.detach(), scene.extent_radius().detach(), camera)
     feats = scene.features if features is None else features
+    offs = scene.offsets if offsets is None else offsets
     _, _, center = camera.torch_params(scene.positions.device, scene.positions.dtype)
-    g = decoder(scene.positions[vis], feats[vis], scene.offsets[vis], scene.scalings[vis], center, xi)
+    g = decoder(scene.positions[vis], feats[vis], offs[vis], scene.scalings[vis], center, xi)
     g.anchor_index = vis[g.anchor_index]
     return g, vis
 
@@ -60,12 +62,13 @@ def render_scene(
     background=(1.0, 1.0, 1.0),
     backend: str = "auto",
     features: torch.Tensor | None = None,
+    offsets: torch.Tensor | None = None,
     gate: GateConfig | None = None,
 ) -> SceneRender:
     """Render ``scene`` from ``camera`` (given at its 100% reference size) at resolution ratio ``xi``."""
     xi = check_xi(xi)
     cam = camera.scaled(xi)
-    g, vis = decode_view(scene, decoder, cam, xi, features)
+    g, vis = decode_view(scene, decoder, cam, xi, features, offsets)
     bg = torch.as_tensor(background, dtype=scene.positions.dtype, device=scene.positions.device)
     proj = project(g.means, g.quats, g.scales, g.opacities, g.colors, cam,
                    gate=decoder.config.gate if gate is None else gate, origin=g.origin, backend=backend)

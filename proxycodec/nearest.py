@@ -12,6 +12,16 @@ from .errors import ProxycodecError
 BRUTE_FORCE_PAIRS = 16_000_000
 
 
+def _split(positions, proxy_mask) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(float64 positions, proxy indices, leaf indices); a leaf without any proxy is an error."""
+    p = np.asarray(positions, dtype=np.float64)
+    mask = np.asarray(proxy_mask, dtype=bool)
+    pidx, leaves = np.flatnonzero(mask), np.flatnonzero(~mask)
+    if len(leaves) and not len(pidx):
+        raise ProxycodecError("no proxy anchors: every leaf needs a proxy")
+    return p, pidx, leaves
+
+
 def nearest_proxy(positions, proxy_mask, brute_force_pairs: int = BRUTE_FORCE_PAIRS) -> np.ndarray:
     """[M] int64: index (into ``positions``) of each anchor's nearest proxy; proxies map to themselves.
 
@@ -19,16 +29,10 @@ def nearest_proxy(positions, proxy_mask, brute_force_pairs: int = BRUTE_FORCE_PA
     the smallest proxy index. Encoder and decoder call this on the same stored positions, so they always agree.
     ``positions``: [M, 3] array-like (numpy; ``proxy.nearest_proxy`` also takes tensors).
     """
-    p = np.asarray(positions, dtype=np.float64)
-    mask = np.asarray(proxy_mask, dtype=bool)
-    M = len(p)
-    out = np.arange(M, dtype=np.int64)
-    pidx = np.flatnonzero(mask)
-    leaves = np.flatnonzero(~mask)
+    p, pidx, leaves = _split(positions, proxy_mask)
+    out = np.arange(len(p), dtype=np.int64)
     if len(leaves) == 0:
         return out
-    if len(pidx) == 0:
-        raise ProxycodecError("no proxy anchors: every leaf needs a proxy")
     pp = p[pidx]
     if len(leaves) * len(pidx) <= brute_force_pairs:
         cols = [np.ascontiguousarray(pp[:, a]) for a in range(3)]
@@ -58,4 +62,46 @@ def nearest_proxy(positions, proxy_mask, brute_force_pairs: int = BRUTE_FORCE_PA
         d = ((pp - p[leaves[r]]) ** 2).sum(-1)
         best[r] = pidx[np.argmin(d)]
     out[leaves] = best
+    return out
+
+
+def nearest_proxies(positions, proxy_mask, k: int, brute_force_pairs: int = BRUTE_FORCE_PAIRS) -> np.ndarray:
+    """[M, k] int64: each leaf's ``k`` nearest proxies, nearest first (column 0 is ``nearest_proxy``); a proxy's
+    row holds itself k times. Order: squared float64 distance as in ``nearest_proxy``, ties to the smaller proxy
+    index; ``k`` larger than the number of proxies repeats the farthest one."""
+    if k == 1:
+        return nearest_proxy(positions, proxy_mask, brute_force_pairs)[:, None]
+    p, pidx, leaves = _split(positions, proxy_mask)
+    out = np.repeat(np.arange(len(p), dtype=np.int64)[:, None], k, axis=1)
+    if len(leaves) == 0:
+        return out
+    pp = p[pidx]
+    kk = min(k, len(pidx))
+
+    def pick(cand: np.ndarray, d2: np.ndarray) -> np.ndarray:  # cand [l, c] proxy positions in pidx, ascending
+        order = np.argsort(d2, axis=1, kind="stable")[:, :kk]  # stable: equal distances keep ascending index
+        sel = pidx[np.take_along_axis(cand, order, 1)]
+        return np.concatenate([sel, np.repeat(sel[:, -1:], k - kk, 1)], 1) if kk < k else sel
+
+    if len(leaves) * len(pidx) <= brute_force_pairs:
+        rows = max(1, (4 << 20) // len(pidx))
+        allc = np.arange(len(pidx))
+        for s in range(0, len(leaves), rows):
+            lv = leaves[s:s + rows]
+            d2 = ((pp[None, :, :] - p[lv][:, None, :]) ** 2).sum(-1)
+            out[lv] = pick(np.broadcast_to(allc, d2.shape), d2)
+        return out
+    from scipy.spatial import cKDTree
+
+    c = min(kk + 16, len(pidx))
+    _, cand = cKDTree(pp).query(p[leaves], k=c)
+    cand = np.sort(cand.reshape(len(leaves), c), axis=1)
+    d2 = ((pp[cand] - p[leaves][:, None, :]) ** 2).sum(-1)
+    res = pick(cand, d2)
+    # a tie between the k-th nearest and the farthest candidate may hide equal ones beyond: resolve exhaustively
+    kth = np.sort(d2, axis=1)[:, kk - 1]
+    for r in np.flatnonzero(d2.max(1) <= kth):
+        dr = ((pp - p[leaves[r]]) ** 2).sum(-1)
+        res[r] = pick(np.arange(len(pidx))[None, :], dr[None, :])[0]
+    out[leaves] = res
     return out

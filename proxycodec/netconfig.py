@@ -90,11 +90,16 @@ class PredictorConfig:
     pe_dist_freqs: int = 4
     pe_dir_freqs: int = 4
     dist_ref: float = 1.0  # distances enter as log(d / dist_ref) / 4 (dist_ref = the voxel size)
+    # proxies the predictor sees: the nearest (the residual's base) and, beyond 1, the next ones as context
+    # (their feature minus the nearest's, and their own distance/direction encoding)
+    context: int = 1
 
     def __post_init__(self) -> None:
         for k in ("feat_dim", "n_offsets", "hidden"):
             if not 1 <= int(getattr(self, k)) <= 4096:
                 raise ProxycodecError(f"predictor {k} = {getattr(self, k)} is out of range")
+        if not 1 <= int(self.context) <= 8:
+            raise ProxycodecError(f"predictor context = {self.context} is out of range (1..8 proxies)")
         for k in ("n_blocks", "pe_dist_freqs", "pe_dir_freqs"):
             if not 0 <= int(getattr(self, k)) <= 64:
                 raise ProxycodecError(f"predictor {k} = {getattr(self, k)} is out of range")
@@ -102,8 +107,13 @@ class PredictorConfig:
             raise ProxycodecError(f"predictor dist_ref must be positive, got {self.dist_ref}")
 
     @property
+    def n_geo(self) -> int:
+        """Width of one proxy's distance/direction encoding."""
+        return (1 + 2 * self.pe_dist_freqs) + 3 * (1 + 2 * self.pe_dir_freqs)
+
+    @property
     def n_in(self) -> int:
-        return self.feat_dim + (1 + 2 * self.pe_dist_freqs) + 3 * (1 + 2 * self.pe_dir_freqs)
+        return self.feat_dim + self.n_geo + (self.context - 1) * (self.feat_dim + self.n_geo)
 
     @property
     def n_out(self) -> int:
@@ -116,7 +126,7 @@ class PredictorConfig:
     def from_json(d: dict) -> "PredictorConfig":
         try:
             kw = {k: d[k] for k in PredictorConfig.__dataclass_fields__ if k in d}
-            for k in ("feat_dim", "n_offsets", "hidden", "n_blocks", "pe_dist_freqs", "pe_dir_freqs"):
+            for k in ("feat_dim", "n_offsets", "hidden", "n_blocks", "pe_dist_freqs", "pe_dir_freqs", "context"):
                 if k in kw:
                     if isinstance(kw[k], bool) or not isinstance(kw[k], int):
                         raise ValueError(f"{k} must be an integer")

@@ -35,8 +35,8 @@ from .netconfig import PredictorConfig
 from .weights import load_state_arrays, state_arrays
 
 __all__ = [
-    "default_cell_size", "select_proxies", "nearest_proxy", "PredictorConfig", "ResidualPredictor",
-    "predictor_inputs", "recon_loss", "TrainConfig", "TrainResult", "train_predictor", "proxies_per_cell",
+    "default_cell_size", "select_proxies", "nearest_proxy", "nearest_proxies", "PredictorConfig", "ResidualPredictor",
+    "predictor_inputs", "predictor_geometry", "recon_loss", "TrainConfig", "TrainResult", "train_predictor", "proxies_per_cell",
     "RECON_LOSSES", "PREDICTOR_KINDS", "ProxyLeafConfig", "ProxyLeafMLP", "predictor_from_json",
 ]
 
@@ -104,6 +104,12 @@ def select_proxies(positions, cell_size: float, ratio: float = 0.3, seed: int = 
 BRUTE_FORCE_PAIRS = _nearest.BRUTE_FORCE_PAIRS
 
 
+def nearest_proxies(positions, proxy_mask, k: int = 1) -> np.ndarray:
+    """[M, k] int64: each anchor's ``k`` nearest proxies, nearest first (``nearest.nearest_proxies``)."""
+    p = positions.detach().cpu().numpy() if isinstance(positions, torch.Tensor) else positions
+    return _nearest.nearest_proxies(p, proxy_mask, k, BRUTE_FORCE_PAIRS)
+
+
 def nearest_proxy(positions, proxy_mask) -> np.ndarray:
     """[M] int64: index (into ``positions``, an array or a tensor) of each anchor's nearest proxy; proxies map to
     themselves. Ties go to the smallest proxy index (``nearest.nearest_proxy`` has the details)."""
@@ -130,6 +136,25 @@ def predictor_inputs(positions: torch.Tensor, proxy_pos: torch.Tensor, dist_ref:
     u = v / d.clamp_min(1e-12)
     s = torch.log(d.clamp_min(1e-6 * dist_ref) / dist_ref) / 4.0
     return torch.cat([positional_encoding(s, pe_dist_freqs), positional_encoding(u, pe_dir_freqs)], -1)
+
+
+def predictor_geometry(positions: torch.Tensor, features: torch.Tensor, near: torch.Tensor, leaves: torch.Tensor,
+                       cfg: PredictorConfig) -> torch.Tensor:
+    """Everything the predictor sees besides the nearest proxy's feature, for the anchors ``leaves``: the encoding
+    of the nearest proxy -> leaf vector; with ``cfg.context`` > 1, per further proxy j (``near`` [M, context],
+    nearest first) its feature minus the nearest's and the encoding of its own vector to the leaf."""
+    if near.dim() == 1:
+        near = near[:, None]
+    if near.shape[1] < cfg.context:
+        raise ProxycodecError(f"the predictor sees {cfg.context} proxies per leaf; got {near.shape[1]}")
+    k = near[leaves]
+    pl = positions[leaves]
+    parts = [predictor_inputs(pl, positions[k[:, 0]], cfg.dist_ref, cfg.pe_dist_freqs, cfg.pe_dir_freqs)]
+    f0 = features[k[:, 0]] if cfg.context > 1 else None
+    for j in range(1, cfg.context):
+        parts.append(features[k[:, j]] - f0)
+        parts.append(predictor_inputs(pl, positions[k[:, j]], cfg.dist_ref, cfg.pe_dist_freqs, cfg.pe_dir_freqs))
+    return torch.cat(parts, -1) if len(parts) > 1 else parts[0]
 
 
 class ResidualPredictor(nn.Module):
@@ -169,8 +194,8 @@ class ResidualPredictor(nn.Module):
         """Predictions for the anchors ``leaves`` given every anchor's position, the proxies' features/offsets
         (rows of leaves are ignored) and ``nearest`` (``nearest_proxy``)."""
         cfg = self.config
-        k = nearest[leaves]
-        geo = predictor_inputs(positions[leaves], positions[k], cfg.dist_ref, cfg.pe_dist_freqs, cfg.pe_dir_freqs)
+        geo = predictor_geometry(positions, features, nearest, leaves, cfg)
+        k = (nearest[:, 0] if nearest.dim() == 2 else nearest)[leaves]
         return self(features[k], geo, offsets[k] if (offsets is not None and cfg.predict_offsets) else None)
 
     # ------------------------------------------------------------------ persistence (raw arrays, no pickle)
@@ -306,7 +331,7 @@ class ProxyLeafMLP(nn.Module):
 
     def predict(self, positions: torch.Tensor, features: torch.Tensor, nearest: torch.Tensor,
                 leaves: torch.Tensor, offsets: torch.Tensor | None = None):
-        k = nearest[leaves]
+        k = (nearest[:, 0] if nearest.dim() == 2 else nearest)[leaves]
         return self(features[k], self.geometry(positions[leaves], positions[k]))
 
     def state_arrays(self) -> dict[str, np.ndarray]:
@@ -419,18 +444,19 @@ def train_predictor(
     t0 = time.perf_counter()
     cfg = predictor.config
     mask = torch.as_tensor(np.asarray(proxy_mask, dtype=bool))
+    context = 1 if isinstance(predictor, ProxyLeafMLP) else cfg.context
     if nearest is None:
-        nearest = nearest_proxy(positions, mask.numpy())
+        nearest = nearest_proxies(positions, mask.numpy(), context)
     nearest = torch.as_tensor(np.asarray(nearest), dtype=torch.long)
     leaves = (~mask).nonzero().squeeze(1)
     positions = positions.detach().float()
     features = features.detach().float()
     offsets = None if offsets is None else offsets.detach().float()
-    k = nearest[leaves]
+    k = (nearest[:, 0] if nearest.dim() == 2 else nearest)[leaves]
     if isinstance(predictor, ProxyLeafMLP):
         geo = predictor.geometry(positions[leaves], positions[k])
     else:
-        geo = predictor_inputs(positions[leaves], positions[k], cfg.dist_ref, cfg.pe_dist_freqs, cfg.pe_dir_freqs)
+        geo = predictor_geometry(positions, features, nearest, leaves, cfg)
     f_in, f_tgt = features[k], features[leaves]
     o_in = offsets[k] if (cfg.predict_offsets and offsets is not None) else None
     o_tgt = offsets[leaves] if o_in is not None else None

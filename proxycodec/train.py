@@ -132,7 +132,11 @@ class FitConfig:
     stage2_start: float = 0.5  # = update_until: the anchor set is final from here on
     recon_switch: float = 2.0 / 3.0  # the paper's 20k of 30k
     lambda_recon: tuple[float, float] = (0.1, 0.01)
-    lambda_recon_fixed: float | None = None  # ablation (supplement Table 10): this constant instead of the schedule
+    # lambda_recon in joint stage 2: this constant, or None for the paper's schedule above (supplement Table 10).
+    # [D] 0: on lego (200 px, 4000 iterations) any weight of the paper's size lets L_recon (pulling predicted leaf
+    # features to their frozen stage-1 values) outweigh the rendering loss in the predictor's Adam updates: the
+    # schedule scored 28.705 dB, fixed 0.01 28.66, 0 29.084 (no proxies: 29.375). The warm-up still uses L_recon.
+    lambda_recon_fixed: float | None = 0.0
     recon_loss: str = "mse+cos"  # ablation (supplement Table 6): "mse+cos" | "mse" | "l1"
     predictor: str = "residual"  # ablation (supplement Table 5): "residual" | "proxy-leaf-mlp" (fit/eval only)
     leaf_sample: float = 0.2
@@ -141,6 +145,14 @@ class FitConfig:
     predictor_hidden: int = 64
     predictor_blocks: int = 2
     predictor_warmup: int = 300  # L_recon-only predictor iterations at the stage switch (no rendering)
+    predictor_context: int = 1  # proxies the residual predictor sees per leaf (1: the paper's nearest proxy)
+    # The predictor is born at the stage switch: its learning rate decays over stage 2 (lr_predictor[0] at the
+    # switch). False: over the whole run, as the other groups (a predictor born at p = 0.5 then starts at 1/10).
+    predictor_lr_stage2: bool = True
+    # [D] the decoder MLPs' learning-rate schedules restart at the stage switch too (their init -> final over
+    # stage 2): they must re-fit to predicted leaf features (+0.11 dB on lego at 200 px)
+    decoder_lr_stage2: bool = True
+    predict_offsets: bool = False  # stage 2 also predicts (and renders) the leaves' offsets; L_recon adds their MSE
     # bookkeeping
     image_cache_mb: int = 2048  # decoded 100% training images kept (float16); beyond this they are re-read
     backend: str = "auto"
@@ -154,7 +166,8 @@ class FitConfig:
         DecoderConfig(embedding=self.embedding)  # validates the name
         if not (0 < self.proxy_ratio <= 1) or not (0 < self.leaf_sample <= 1):
             raise ProxycodecError("proxy ratio and leaf sample fraction must be in (0, 1]")
-        PredictorConfig(hidden=self.predictor_hidden, n_blocks=self.predictor_blocks)  # validates width and depth
+        PredictorConfig(hidden=self.predictor_hidden, n_blocks=self.predictor_blocks,
+                        context=self.predictor_context)  # validates width, depth and context
         if self.predictor_warmup < 0:
             raise ProxycodecError(f"predictor warm-up must be >= 0 iterations, got {self.predictor_warmup}")
         from .proxy import PREDICTOR_KINDS, RECON_LOSSES
@@ -162,6 +175,8 @@ class FitConfig:
         if self.recon_loss not in RECON_LOSSES:
             raise ProxycodecError(f"unknown reconstruction loss {self.recon_loss!r}; choose from "
                                   f"{', '.join(RECON_LOSSES)}")
+        if self.predict_offsets and self.predictor != "residual":
+            raise ProxycodecError("predicting offsets needs the residual predictor")
         if self.predictor not in PREDICTOR_KINDS:
             raise ProxycodecError(f"unknown predictor {self.predictor!r}; choose from {', '.join(PREDICTOR_KINDS)}")
         if self.lambda_recon_fixed is not None and not (math.isfinite(self.lambda_recon_fixed)
@@ -225,9 +240,11 @@ class TrainableAnchors:
         return AnchorScene(self.positions, self.features if features is None else features, self.offsets,
                            self.scalings, self.voxel_size, metadata or {})
 
-    def export(self, features: torch.Tensor | None = None, metadata: dict | None = None) -> AnchorScene:
+    def export(self, features: torch.Tensor | None = None, metadata: dict | None = None,
+               offsets: torch.Tensor | None = None) -> AnchorScene:
         f = self.features if features is None else features
-        return AnchorScene(self.positions.clone(), f.detach().clone(), self.offsets.detach().clone(),
+        o = self.offsets if offsets is None else offsets
+        return AnchorScene(self.positions.clone(), f.detach().clone(), o.detach().clone(),
                            self.scalings.detach().clone(), self.voxel_size, dict(metadata or {})).validate()
 
     def tensors(self) -> dict[str, torch.Tensor]:
@@ -494,6 +511,7 @@ class Trainer(RunSchedule):
         self.proxy_mask: torch.Tensor | None = None  # [M] bool
         self.nearest: torch.Tensor | None = None  # [M] long
         self.leaf_target: torch.Tensor | None = None  # [L, F] stage-1 features of the leaves
+        self.leaf_offset_target: torch.Tensor | None = None  # [L, K, 3] their stage-1 offsets (predict_offsets)
         self.leaves: torch.Tensor | None = None  # [L] long
         self.opt = _Adam()
         for k, t in self.anchors.tensors().items():
@@ -521,11 +539,12 @@ class Trainer(RunSchedule):
                                  "scalings": c.lr_scaling}
         groups = {"mlp_opacity": c.lr_mlp_opacity, "mlp_cov": c.lr_mlp_cov, "mlp_color": c.lr_mlp_color,
                   "mlp_embed": c.lr_mlp_embed}
+        p2 = min(1.0, max(0.0, (p - c.stage2_start) / (1.0 - c.stage2_start))) if c.stage2_start < 1 else 1.0
         for name in self.opt.params:
             if name.startswith("decoder."):
-                lrs[name] = _exp_lr(*groups[name.split(".")[1]], p)
+                lrs[name] = _exp_lr(*groups[name.split(".")[1]], p2 if (c.decoder_lr_stage2 and self.stage >= 2) else p)
             elif name.startswith("predictor."):
-                lrs[name] = _exp_lr(*c.lr_predictor, p)
+                lrs[name] = _exp_lr(*c.lr_predictor, p2 if c.predictor_lr_stage2 else p)
         return lrs
 
     def lambda_recon(self, p: float) -> float:
@@ -534,28 +553,36 @@ class Trainer(RunSchedule):
         return self.cfg.lambda_recon[0] if p < self.cfg.recon_switch else self.cfg.lambda_recon[1]
 
     # ------------------------------------------------------------------ one iteration
-    def _features_for(self, cam: Camera) -> tuple[torch.Tensor | None, torch.Tensor]:
-        """Stage 2: the feature table with predicted features in the visible leaves' rows; and L_recon."""
+    def _features_for(self, cam: Camera) -> tuple[torch.Tensor | None, torch.Tensor | None, torch.Tensor]:
+        """Stage 2: the feature (and, with ``predict_offsets``, offset) tables with the visible leaves' rows
+        predicted; and L_recon."""
         zero = torch.zeros(())
         if self.stage < 2 or self.predictor is None:
-            return None, zero
+            return None, None, zero
         a = self.anchors
+        po = self.cfg.predict_offsets
         vis = visible_anchors(a.positions, a.scene().extent_radius().detach(), cam)
         leaf_vis = vis[~self.proxy_mask[vis]]
-        feats = a.features
+        feats, offs = a.features, (a.offsets if po else None)
         if leaf_vis.numel():
-            pred, _ = self.predictor.predict(a.positions, a.features, self.nearest, leaf_vis)
+            pred, pred_o = self.predictor.predict(a.positions, a.features, self.nearest, leaf_vis, offs)
             feats = a.features.index_put((leaf_vis,), pred)
-        # L_recon on a random 20% of all leaves (not only the visible ones) against their stage-1 features.
+            if po:
+                offs = a.offsets.index_put((leaf_vis,), pred_o)
+        # L_recon on a random 20% of all leaves (not only the visible ones) against their stage-1 values.
         L = int(self.leaves.numel())
         n = max(1, math.ceil(self.cfg.leaf_sample * L)) if L else 0
         if n == 0:
-            return feats, zero
+            return feats, offs, zero
         sel = torch.from_numpy(self.rng.choice(L, n, replace=False)).long()
         from .proxy import recon_loss
 
-        pred_s, _ = self.predictor.predict(a.positions, a.features, self.nearest, self.leaves[sel])
-        return feats, recon_loss(pred_s, self.leaf_target[sel], kind=self.cfg.recon_loss)
+        pred_s, pred_so = self.predictor.predict(a.positions, a.features, self.nearest, self.leaves[sel],
+                                                 a.offsets if po else None)
+        loss = recon_loss(pred_s, self.leaf_target[sel], kind=self.cfg.recon_loss)
+        if po:  # the offset term of proxy.train_predictor (offset_weight 1)
+            loss = loss + ((pred_so - self.leaf_offset_target[sel]) ** 2).sum((1, 2)).mean()
+        return feats, offs, loss
 
     def train_step(self) -> dict:
         c = self.cfg
@@ -566,9 +593,9 @@ class Trainer(RunSchedule):
         xi = 1.0 if c.fixed_res else float(c.xi_min + (c.xi_max - c.xi_min) * self.rng.random())
         cam = self.data.cameras[i]
         gt = self.images.get(i, xi)  # [h, w, 3] anti-aliased to camera.scaled(xi)
-        feats, l_recon = self._features_for(cam.scaled(xi))
+        feats, offs, l_recon = self._features_for(cam.scaled(xi))
         r = render_scene(self.anchors.scene(), self.decoder, cam, xi, background=self.bg, backend=c.backend,
-                         features=feats)
+                         features=feats, offsets=offs)
         img = r.image
         l1 = (img - gt).abs().mean()
         loss = (1 - c.lambda_dssim) * l1 + c.lambda_dssim * dssim(img, gt)
@@ -733,14 +760,16 @@ class Trainer(RunSchedule):
                                    scene_center=d.scene_center, scene_radius=d.scene_radius)
         return PredictorConfig(feat_dim=self.cfg.feat_dim, n_offsets=self.cfg.n_offsets,
                                hidden=self.cfg.predictor_hidden, n_blocks=self.cfg.predictor_blocks,
-                               dist_ref=self.anchors.voxel_size)
+                               dist_ref=self.anchors.voxel_size, predict_offsets=self.cfg.predict_offsets,
+                               context=self.cfg.predictor_context)
 
     def _setup_proxies(self, mask: np.ndarray) -> None:
-        from .proxy import nearest_proxy, predictor_from_json
+        from .proxy import nearest_proxies, predictor_from_json
 
         a = self.anchors
         self.proxy_mask = torch.from_numpy(np.asarray(mask, dtype=bool))
-        self.nearest = torch.from_numpy(nearest_proxy(a.positions, mask)).long()
+        ctx = self.cfg.predictor_context if self.cfg.predictor == "residual" else 1
+        self.nearest = torch.from_numpy(nearest_proxies(a.positions, mask, ctx)).long()  # [M, ctx]
         self.leaves = (~self.proxy_mask).nonzero().squeeze(1)
         if self.predictor is None:
             self.predictor = predictor_from_json(self._predictor_config().to_json())
@@ -764,9 +793,12 @@ class Trainer(RunSchedule):
         cell = self.proxy_cell_size()
         mask = select_proxies(a.positions, cell, c.proxy_ratio, c.seed)
         self.leaf_target = a.features.detach()[torch.from_numpy(~mask)].clone()
+        if c.predict_offsets:
+            self.leaf_offset_target = a.offsets.detach()[torch.from_numpy(~mask)].clone()
         self._setup_proxies(mask)
         if c.predictor_warmup > 0 and self.leaves.numel():
             res = train_predictor(self.predictor, a.positions, a.features.detach(), mask, self.nearest.numpy(),
+                                  offsets=a.offsets.detach() if c.predict_offsets else None,
                                   config=TrainConfig(iters=c.predictor_warmup, sample_frac=c.leaf_sample,
                                                      seed=c.seed), recon=c.recon_loss)
             warm = f"; predictor warm-up L_recon {res.baseline_loss:.4f} -> {res.final_loss:.4f}"
@@ -778,20 +810,27 @@ class Trainer(RunSchedule):
 
     # ------------------------------------------------------------------ results
     @torch.no_grad()
-    def final_features(self) -> torch.Tensor:
-        """Proxies keep their features; leaves get the predictor's (what stage 2 rendered with)."""
+    def final_features(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Features and offsets as stage 2 rendered them: the proxies' own; the leaves' predicted features (and
+        predicted offsets with ``predict_offsets``)."""
         a = self.anchors
         f = a.features.detach().clone()
+        o = a.offsets.detach().clone()
         if self.stage >= 2 and self.predictor is not None and self.leaves.numel():
             self.predictor.eval()
-            pred, _ = self.predictor.predict(a.positions, a.features.detach(), self.nearest, self.leaves)
+            po = self.cfg.predict_offsets
+            pred, pred_o = self.predictor.predict(a.positions, a.features.detach(), self.nearest, self.leaves,
+                                                  o if po else None)
             f[self.leaves] = pred
-        return f
+            if po:
+                o[self.leaves] = pred_o
+        return f, o
 
     def result(self) -> FitResult:
         a = self.anchors
         meta = {"name": Path(self.dataset_root).name if self.dataset_root else "fit"}
-        scene = a.export(self.final_features(), meta)
+        feats, offs = self.final_features()
+        scene = a.export(feats, meta, offs)
         dec = self.decoder
         dec.eval()
         cams = [self.data.cameras[i] for i in self.data.test_indices] + \
@@ -832,6 +871,8 @@ class Trainer(RunSchedule):
         if self.stage >= 2:
             arrays["proxy_mask"] = self.proxy_mask.numpy().astype(np.uint8)
             arrays["leaf_target"] = self.leaf_target.numpy().copy()
+            if self.cfg.predict_offsets:
+                arrays["leaf_offset_target"] = self.leaf_offset_target.numpy().copy()
             for k, v in self.predictor.state_arrays().items():
                 arrays[f"predictor/{k}"] = v
         arrays.update(self.opt.state_arrays())
@@ -887,6 +928,8 @@ class Trainer(RunSchedule):
                     self._predictor_config().to_json() if "predictor" not in m else m["predictor"],
                     {k[len("predictor/"):]: v for k, v in arr.items() if k.startswith("predictor/")})
                 self.leaf_target = torch.from_numpy(np.array(arr["leaf_target"]))
+                if self.cfg.predict_offsets:
+                    self.leaf_offset_target = torch.from_numpy(np.array(arr["leaf_offset_target"]))
                 self._setup_proxies(np.asarray(arr["proxy_mask"], dtype=bool))
                 self.predictor.train()
             self.opt.load_arrays(arr, m["adam_steps"])

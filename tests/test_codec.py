@@ -17,6 +17,7 @@ from proxycodec.cli.main import cli
 from proxycodec.decoder import DecoderConfig, GaussianDecoder
 from proxycodec.errors import ProxycodecError
 from proxycodec.formats.container import ContainerError, read_container, write_container
+from proxycodec.sections import read_scene_container
 from proxycodec.model import SceneModel
 from proxycodec.scene import AnchorScene
 
@@ -129,6 +130,29 @@ class TestExactness:
         mask = dec.scene.metadata["proxy_mask"]
         assert (~mask).sum() == report.leaves > 0
 
+    def test_weights_are_packed_and_scene_format_1_stays_readable(self, encoded, tmp_path):
+        """Scene format 2 packs the ~50 weight tensors into a few sections per network; a format-1 file (one
+        section per tensor, no layout) decodes to the same model in both decoders."""
+        from proxycodec import lite
+
+        _, path, report = encoded
+        names = [s["name"] for s in report.sections]
+        assert report.meta["scene_format"] == 2
+        assert sorted(n for n in names if n.split("/")[0] in ("decoder", "predictor")) == [
+            "decoder/packed.f2", "decoder/packed.f4", "decoder/packed.i1",
+            "predictor/packed.f2", "predictor/packed.f4", "predictor/packed.i1"]
+        c = read_scene_container(path)
+        old = tmp_path / "v1.pxc"
+        write_container(old, {k: v for k, v in c.meta.items() if k != "weights_layout"} | {"scene_format": 1},
+                        c.arrays)
+        assert old.stat().st_size > path.stat().st_size + 2000  # the table entries packing saves
+        a, b = codec.decode(path), codec.decode(old)
+        for (k, x), (_, y) in zip(a.decoder.state_dict().items(), b.decoder.state_dict().items()):
+            assert torch.equal(x, y), k
+        assert torch.equal(a.scene.features, b.scene.features) and torch.equal(a.scene.offsets, b.scene.offsets)
+        la, lb = lite.decode(path), lite.decode(old)
+        assert np.array_equal(la.features, lb.features)
+
     def test_fresh_process_decodes_bit_exactly(self, encoded, tmp_path):
         _, path, report = encoded
         out = tmp_path / "dec.npz"
@@ -222,7 +246,7 @@ class TestFittedPredictor:
         assert np.array_equal(dec.scene.metadata["proxy_mask"], mask[idx])
         got = ResidualPredictor.from_arrays(
             PredictorConfig.from_json(r.meta["predictor"]),
-            {k[10:]: v for k, v in read_container(tmp_path / "s.pxc").arrays.items() if k.startswith("predictor/")})
+            {k[10:]: v for k, v in read_scene_container(tmp_path / "s.pxc").arrays.items() if k.startswith("predictor/")})
         for k, v in pred.state_arrays().items():
             assert np.array_equal(got.state_arrays()[k], v.astype(np.float16).astype(np.float32)), k
         r2 = codec.encode(ply, tmp_path / "t.pxc", use_fitted=False, **FAST)
@@ -362,7 +386,7 @@ def test_q8_weights_round_trip_within_half_a_step_and_cameras_are_capped(tmp_pat
             step = w.abs().amax(1, keepdim=True) / 127
             assert ((w - d).abs() <= step / 2 + 1e-7).all(), k
     assert [c.name for c in back.cameras] == [m.cameras[i].name for i in (0, 8, 16, 24, 32)]
-    c = read_container(tmp_path / "q.pxc")
+    c = read_scene_container(tmp_path / "q.pxc")
     assert c.arrays["decoder/mlp_cov.2.weight"].dtype == np.int8 and c.meta["cameras_in_source"] == 40
     f16 = codec.encode(m, tmp_path / "h.pxc", weights_dtype="f16", predictor_iters=10, max_cameras=5)
     assert r.file_bytes < f16.file_bytes

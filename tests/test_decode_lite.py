@@ -14,6 +14,7 @@ import torch
 from click.testing import CliRunner
 from proxycodec.cli.main import cli
 from proxycodec.formats.container import ContainerError, read_container, write_container
+from proxycodec.sections import pack_weights, read_scene_container
 from test_codec import FAST, tiny_model
 
 from proxycodec import codec, lite
@@ -47,6 +48,7 @@ def _model(n=200, seed=0, **decoder_kw) -> SceneModel:
 
 VARIANTS = {
     "film_q8": ({}, {}),
+    "film_q8_context3": ({}, {"predictor_context": 3}),
     "additive_f32_predicted_offsets": ({"embedding": "additive"}, {"weights_dtype": "f32", "predict_offsets": True}),
     "none_f16_no_gate_float_bits": ({"embedding": "none", "gate": GateConfig(enabled=False)},
                                     {"weights_dtype": "f16", "feature_bits": 32, "scaling_bits": 12}),
@@ -166,7 +168,8 @@ def _outcome(fn, path):
 
 def test_hostile_containers_fail_as_in_the_torch_path(encoded, tmp_path):
     path = encoded[0]
-    c = read_container(path)
+    c = read_scene_container(path)  # weights unpacked: the cases below edit them by name, then pack again
+    lay = pack_weights(c.arrays)[1]
     cases = {
         "wrong count": ({**c.meta, "anchors": {**c.meta["anchors"], "count": c.meta["anchors"]["count"] + 1}},
                         c.arrays),
@@ -185,10 +188,18 @@ def test_hostile_containers_fail_as_in_the_torch_path(encoded, tmp_path):
         "bad predictor config": ({**c.meta, "predictor": {**c.meta["predictor"], "dist_ref": 1e308}}, c.arrays),
         "bad camera": ({**c.meta, "cameras": [{"fx": 1}]}, c.arrays),
         "bad background": ({**c.meta, "background": [1, 2]}, c.arrays),
+        "weights layout longer than its section": ({**c.meta, "weights_layout": lay + [lay[0]]}, c.arrays),
+        "weights layout shorter than its section": ({**c.meta, "weights_layout": lay[1:]}, c.arrays),
+        "weights layout entry malformed": ({**c.meta, "weights_layout": [[lay[0][0], "f8", [2]]] + lay[1:]}, c.arrays),
+        "weights layout shape of the wrong type": ({**c.meta, "weights_layout": [[lay[0][0], lay[0][1], "32"]]
+                                                    + lay[1:]}, c.arrays),
+        "weights layout missing": ({k: v for k, v in c.meta.items() if k != "weights_layout"}, c.arrays),
     }
     for name, (meta, arrays) in cases.items():
         p = tmp_path / "bad.pxc"
-        write_container(p, meta, arrays, level=1)
+        packed, layout = pack_weights(arrays)
+        write_container(p, meta if name.startswith("weights layout") else {**meta, "weights_layout": layout},
+                        packed, level=1)
         want = _outcome(codec.decode, p)
         assert want[0] == "ContainerError", name
         assert _outcome(lite.decode, p) == want, name

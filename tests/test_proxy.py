@@ -120,6 +120,29 @@ class TestNearestProxy:
         mask = np.r_[np.ones(24, bool), False]
         assert np.array_equal(nearest_proxy(p, mask), self.brute(p, mask))
 
+    @pytest.mark.parametrize("k", [2, 3, 5])
+    def test_k_nearest_in_distance_then_index_order_on_both_paths(self, k, monkeypatch):
+        import proxycodec.proxy as proxy
+        from proxycodec.proxy import nearest_proxies
+
+        p = grid_points(300, size=(10, 10, 3), seed=k)  # a grid: many equidistant proxies
+        mask = select_proxies(p, 0.15, 0.3, k)
+        got = nearest_proxies(p, mask, k)
+        pidx = np.flatnonzero(mask)
+        for i in range(len(p)):
+            if mask[i]:
+                assert (got[i] == i).all()
+                continue
+            d = ((p[pidx].astype(np.float64) - p[i]) ** 2).sum(1)
+            assert np.array_equal(got[i], pidx[np.lexsort((pidx, d))][:k]), i
+        assert np.array_equal(got[:, 0], nearest_proxy(p, mask))
+        monkeypatch.setattr(proxy, "BRUTE_FORCE_PAIRS", 0)
+        assert np.array_equal(nearest_proxies(p, mask, k), got)
+        few = np.zeros(len(p), bool)
+        few[[3, 7]] = True  # k beyond the number of proxies: the farthest one repeats
+        two = nearest_proxies(p, few, 4)
+        assert set(two[0]) <= {3, 7} and (two[~few][:, 2:] == two[~few][:, 1:2]).all()
+
     def test_proxies_map_to_themselves_and_no_proxy_is_an_error(self):
         p = grid_points(50)
         mask = np.zeros(50, bool)
@@ -163,6 +186,34 @@ class TestPredictor:
         assert r.baseline_loss == pytest.approx(base, rel=1e-5)
         assert r.final_loss < 0.7 * r.baseline_loss
         assert not pred.training
+
+    def test_context_of_more_proxies_predicts_better(self):
+        """context > 1: the next nearest proxies' features (relative to the nearest) and geometry are inputs; the
+        untrained predictor is still the nearest-proxy copy, and a trained one beats the 1-proxy predictor."""
+        from proxycodec.proxy import nearest_proxies
+
+        pos, feats = smooth_scene(600, seed=4)
+        mask = select_proxies(pos, 0.15, 0.3, 0)
+        leaves = torch.from_numpy(np.flatnonzero(~mask))
+        near3 = torch.from_numpy(nearest_proxies(pos, mask, 3))
+        torch.manual_seed(0)
+        pred3 = ResidualPredictor(PredictorConfig(hidden=32, dist_ref=0.05, context=3))
+        assert pred3.encoder[0].in_features == 32 + 3 * pred3.config.n_geo + 2 * 32
+        f, _ = pred3.predict(pos, feats, near3, leaves)
+        assert torch.equal(f, feats[near3[leaves, 0]])
+        with pytest.raises(ProxycodecError, match="sees 3 proxies"):
+            pred3.predict(pos, feats, near3[:, :1], leaves)
+        losses = []
+        for ctx in (1, 3):
+            torch.manual_seed(0)
+            pred = ResidualPredictor(PredictorConfig(hidden=32, dist_ref=0.05, context=ctx))
+            losses.append(train_predictor(pred, pos, feats, mask, config=TrainConfig(iters=300, lr=3e-3)).final_loss)
+        assert losses[1] < 0.95 * losses[0]
+        with pytest.raises(ProxycodecError, match="context"):
+            PredictorConfig(context=0)
+        assert PredictorConfig.from_json({**PredictorConfig(context=3).to_json()}).context == 3
+        assert PredictorConfig.from_json({k: v for k, v in PredictorConfig().to_json().items()
+                                          if k != "context"}).context == 1  # older files
 
     def test_offsets_prediction_shapes_and_training(self):
         pos, feats = smooth_scene(200)

@@ -98,7 +98,9 @@ class TestReconLoss:
         from proxycodec.train import Trainer
 
         data = load_dataset(tiny[0])
-        sched = Trainer(data, small_config(), "tiny")
+        default = Trainer(data, small_config(), "tiny")  # [D] 0: rendering alone drives joint stage 2
+        assert (default.lambda_recon(0.6), default.lambda_recon(0.9)) == (0.0, 0.0)
+        sched = Trainer(data, small_config(lambda_recon_fixed=None), "tiny")  # the paper's schedule
         assert (sched.lambda_recon(0.6), sched.lambda_recon(0.7)) == (0.1, 0.01)
         fixed = Trainer(data, small_config(lambda_recon_fixed=0.1), "tiny")
         assert (fixed.lambda_recon(0.6), fixed.lambda_recon(0.9)) == (0.1, 0.1)

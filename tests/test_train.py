@@ -243,6 +243,46 @@ class TestFit:
         assert not (tmp_path / "other.ply").exists()
         assert not (tmp_path / "other.weights.pxc").exists()
 
+    def test_predicted_offsets_are_what_is_stored_and_encode_follows(self, data, tmp_path):
+        """fit --predict-offsets: the leaves' offsets in the PLY are the predictor's (what stage 2 rendered), a
+        resumed run ends where an uninterrupted one does, and encode stores proxy offsets only."""
+        from proxycodec.codec import EncodeConfig, decode, encode
+        from proxycodec.model import SceneModel, weights_path_for
+        from proxycodec.proxy import nearest_proxy
+        from proxycodec.train import load_predictor
+
+        cfg = small_config(iters=24, predict_offsets=True)
+        out = tmp_path / "po.ply"
+        _fit(data, out, cfg)
+        pred, mask = load_predictor(weights_path_for(out))
+        assert pred.config.predict_offsets
+        m = SceneModel.load(out)
+        s = m.scene
+        near = torch.from_numpy(nearest_proxy(s.positions, mask))
+        leaves = torch.from_numpy(~mask).nonzero().squeeze(1)
+        with torch.no_grad():
+            f, o = pred.predict(s.positions, s.features, near, leaves, s.offsets)
+        assert torch.allclose(f, s.features[leaves], atol=1e-5)
+        assert torch.allclose(o, s.offsets[leaves], atol=1e-5)
+        # interrupted in stage 2 and resumed: the same scene
+        out2 = tmp_path / "po2.ply"
+        with pytest.raises(KeyboardInterrupt):
+            _fit(data, out2, cfg, stop_after=16)
+        _fit(data, out2, cfg, resume=True)
+        assert torch.allclose(SceneModel.load(out2).scene.offsets, s.offsets, atol=1e-4)
+        # encode follows the fitted predictor: proxy offsets only; asking to store them is refused
+        rep = encode(out, tmp_path / "po.pxc", EncodeConfig(max_cameras=1))
+        assert rep.meta["offsets"] == "predicted" and rep.proxies == int(mask.sum())
+        names = {sec["name"] for sec in rep.sections}
+        assert "proxy/offsets" in names and "anchors/offsets" not in names
+        a = m.render(m.cameras[0], 0.5).image
+        b = decode(rep.path).render(m.cameras[0], 0.5).image
+        assert mse_to_psnr(float(((a - b) ** 2).mean())) > 35.0  # 8-bit quantisation only
+        with pytest.raises(ProxycodecError, match="predicts"):
+            encode(out, tmp_path / "po_store.pxc", EncodeConfig(predict_offsets=False))
+        with pytest.raises(ProxycodecError, match="residual"):
+            small_config(predict_offsets=True, predictor="proxy-leaf-mlp")
+
     def test_ablation_switches(self, data, tmp_path):
         from proxycodec.model import SceneModel
         from proxycodec.train import load_predictor
