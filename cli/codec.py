@@ -185,7 +185,8 @@ def stats(file, as_json) -> None:
         for k, v in s["raw_bytes_by_group"].items():
             click.echo(f"  {k:10s} {v:12,} B")
         return
-    click.echo(f"{s['file']}: proxycodec container v{s['format_version']}, kind {s['kind']}, "
+    fmt = f" (scene format {s['scene_format']})" if s.get("scene_format") is not None else ""
+    click.echo(f"{s['file']}: proxycodec container v{s['format_version']}, kind {s['kind']}{fmt}, "
                f"{s['file_bytes']:,} B")
     if s.get("anchors") is not None and s["kind"] == "proxycodec.scene":
         ratio = f", {s['ratio']:.1f}x smaller than PLY + weights ({s['source_bytes']:,} B)" if s["ratio"] else ""

@@ -35,8 +35,8 @@ from .netconfig import PredictorConfig
 from .weights import load_state_arrays, state_arrays
 
 __all__ = [
-    "default_cell_size", "select_proxies", "nearest_proxy", "nearest_proxies", "PredictorConfig", "ResidualPredictor",
-    "predictor_inputs", "predictor_geometry", "recon_loss", "TrainConfig", "TrainResult", "train_predictor", "proxies_per_cell",
+    "default_cell_size", "select_proxies", "nearest_proxy", "nearest_proxies", "PredictorConfig",
+    "ResidualPredictor", "predictor_inputs", "predictor_geometry", "recon_loss", "TrainConfig", "TrainResult", "train_predictor", "proxies_per_cell",
     "RECON_LOSSES", "PREDICTOR_KINDS", "ProxyLeafConfig", "ProxyLeafMLP", "predictor_from_json",
 ]
 

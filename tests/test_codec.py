@@ -323,6 +323,7 @@ class TestCli:
         assert r.exit_code == 0 and json.loads(r.output)["anchors"] == 150
         r = run(cli, ["stats", str(pxc)])
         assert r.exit_code == 0 and "bits/anchor" in r.output and "proxy/features" in r.output
+        assert "(scene format 2)" in r.output
         r = run(cli, ["stats", str(ply)])
         assert r.exit_code == 0 and "150 anchors" in r.output
         cams = tmp_path / "cams.json"
