@@ -619,8 +619,11 @@ else:  # the CLI
 def _interrupt(args: list[str], cwd: Path) -> subprocess.CompletedProcess:
     import signal
 
+    # SIGINT back to its default in the child: a test run started as a background job (``cmd &`` in a script)
+    # inherits SIGINT ignored, and a Python started with SIGINT ignored never raises KeyboardInterrupt.
     p = subprocess.Popen([sys.executable, "-c", _SLOW_WRITER, *args], cwd=cwd, stdout=subprocess.PIPE,
-                         stderr=subprocess.PIPE, text=True)
+                         stderr=subprocess.PIPE, text=True,
+                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         for line in p.stdout:
             if "WRITING" in line:
