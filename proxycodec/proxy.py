@@ -35,9 +35,10 @@ from .netconfig import PredictorConfig
 from .weights import load_state_arrays, state_arrays
 
 __all__ = [
-    "default_cell_size", "select_proxies", "nearest_proxy", "nearest_proxies", "PredictorConfig",
-    "ResidualPredictor", "predictor_inputs", "predictor_geometry", "recon_loss", "TrainConfig", "TrainResult", "train_predictor", "proxies_per_cell",
-    "RECON_LOSSES", "PREDICTOR_KINDS", "ProxyLeafConfig", "ProxyLeafMLP", "predictor_from_json",
+    "default_cell_size", "select_proxies", "nearest_proxy", "nearest_proxies", "nearest_column", "PredictorConfig",
+    "ResidualPredictor", "predictor_inputs", "predictor_geometry", "recon_loss", "offset_recon_loss", "TrainConfig",
+    "TrainResult", "train_predictor", "proxies_per_cell", "RECON_LOSSES", "PREDICTOR_KINDS", "ProxyLeafConfig",
+    "ProxyLeafMLP", "predictor_from_json",
 ]
 
 
@@ -138,6 +139,17 @@ def predictor_inputs(positions: torch.Tensor, proxy_pos: torch.Tensor, dist_ref:
     return torch.cat([positional_encoding(s, pe_dist_freqs), positional_encoding(u, pe_dir_freqs)], -1)
 
 
+def nearest_column(nearest: torch.Tensor) -> torch.Tensor:
+    """[M]: each anchor's nearest proxy, from ``nearest`` given as [M] (``nearest_proxy``) or [M, k]
+    (``nearest_proxies``, nearest first)."""
+    return nearest[:, 0] if nearest.dim() == 2 else nearest
+
+
+def offset_recon_loss(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """The offsets' reconstruction term: squared error summed over a leaf's K x 3 offsets, mean over leaves."""
+    return ((pred - target) ** 2).sum((1, 2)).mean()
+
+
 def predictor_geometry(positions: torch.Tensor, features: torch.Tensor, near: torch.Tensor, leaves: torch.Tensor,
                        cfg: PredictorConfig) -> torch.Tensor:
     """Everything the predictor sees besides the nearest proxy's feature, for the anchors ``leaves``: the encoding
@@ -195,7 +207,7 @@ class ResidualPredictor(nn.Module):
         (rows of leaves are ignored) and ``nearest`` (``nearest_proxy``)."""
         cfg = self.config
         geo = predictor_geometry(positions, features, nearest, leaves, cfg)
-        k = (nearest[:, 0] if nearest.dim() == 2 else nearest)[leaves]
+        k = nearest_column(nearest)[leaves]
         return self(features[k], geo, offsets[k] if (offsets is not None and cfg.predict_offsets) else None)
 
     # ------------------------------------------------------------------ persistence (raw arrays, no pickle)
@@ -331,7 +343,7 @@ class ProxyLeafMLP(nn.Module):
 
     def predict(self, positions: torch.Tensor, features: torch.Tensor, nearest: torch.Tensor,
                 leaves: torch.Tensor, offsets: torch.Tensor | None = None):
-        k = (nearest[:, 0] if nearest.dim() == 2 else nearest)[leaves]
+        k = nearest_column(nearest)[leaves]
         return self(features[k], self.geometry(positions[leaves], positions[k]))
 
     def state_arrays(self) -> dict[str, np.ndarray]:
@@ -452,7 +464,7 @@ def train_predictor(
     positions = positions.detach().float()
     features = features.detach().float()
     offsets = None if offsets is None else offsets.detach().float()
-    k = (nearest[:, 0] if nearest.dim() == 2 else nearest)[leaves]
+    k = nearest_column(nearest)[leaves]
     if isinstance(predictor, ProxyLeafMLP):
         geo = predictor.geometry(positions[leaves], positions[k])
     else:
@@ -468,7 +480,7 @@ def train_predictor(
         fp, op = predictor(f_in[sl], geo[sl], None if o_in is None else o_in[sl])
         loss = recon_loss(fp, f_tgt[sl], kind=recon)
         if op is not None:
-            loss = loss + config.offset_weight * ((op - o_tgt[sl]) ** 2).sum((1, 2)).mean()
+            loss = loss + config.offset_weight * offset_recon_loss(op, o_tgt[sl])
         return loss
 
     with torch_threads(1):

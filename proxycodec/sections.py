@@ -152,7 +152,7 @@ def unpack_weights(meta: dict, arrays: dict[str, np.ndarray], err: ErrorFactory)
             raise err(f"bad or repeated weight name {name[:80]!r} in weights_layout")
         src = _packed_name(group, code)
         packed = arrays.get(src)
-        if packed is None or packed.ndim != 1 or packed.dtype != np.dtype("<" + code if code != "i1" else "i1"):
+        if packed is None or packed.ndim != 1 or packed.dtype != np.dtype("<" + code):
             raise err(f"missing or malformed section {src!r}")
         n = math.prod(shape)
         start = used.get(src, 0)

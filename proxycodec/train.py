@@ -542,7 +542,8 @@ class Trainer(RunSchedule):
         p2 = min(1.0, max(0.0, (p - c.stage2_start) / (1.0 - c.stage2_start))) if c.stage2_start < 1 else 1.0
         for name in self.opt.params:
             if name.startswith("decoder."):
-                lrs[name] = _exp_lr(*groups[name.split(".")[1]], p2 if (c.decoder_lr_stage2 and self.stage >= 2) else p)
+                q = p2 if (c.decoder_lr_stage2 and self.stage >= 2) else p
+                lrs[name] = _exp_lr(*groups[name.split(".")[1]], q)
             elif name.startswith("predictor."):
                 lrs[name] = _exp_lr(*c.lr_predictor, p2 if c.predictor_lr_stage2 else p)
         return lrs
@@ -575,13 +576,13 @@ class Trainer(RunSchedule):
         if n == 0:
             return feats, offs, zero
         sel = torch.from_numpy(self.rng.choice(L, n, replace=False)).long()
-        from .proxy import recon_loss
+        from .proxy import offset_recon_loss, recon_loss
 
         pred_s, pred_so = self.predictor.predict(a.positions, a.features, self.nearest, self.leaves[sel],
                                                  a.offsets if po else None)
         loss = recon_loss(pred_s, self.leaf_target[sel], kind=self.cfg.recon_loss)
         if po:  # the offset term of proxy.train_predictor (offset_weight 1)
-            loss = loss + ((pred_so - self.leaf_offset_target[sel]) ** 2).sum((1, 2)).mean()
+            loss = loss + offset_recon_loss(pred_so, self.leaf_offset_target[sel])
         return feats, offs, loss
 
     def train_step(self) -> dict:
