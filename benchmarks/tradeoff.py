@@ -38,7 +38,7 @@ SEED = 0
 SCENES = {
     "lego": {"dataset": SHARED / "nerf_synthetic" / "lego", "max_width": 400, "views": 8, "budgets": [120, 400, 900],
              "test_every": 8},
-    "bonsai": {"dataset": SHARED / "mipnerf360" / "bonsai", "max_width": 800, "views": 4, "budgets": [300, 900],
+    "bonsai": {"dataset": SHARED / "mipnerf360" / "bonsai", "max_width": 800, "views": 4, "budgets": [300, 600],
                "test_every": 8},
 }
 QUICK = {"lego": {"max_width": 160, "views": 2, "budgets": [20, 60]}}
