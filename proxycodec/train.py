@@ -142,6 +142,7 @@ class FitConfig:
     leaf_sample: float = 0.2
     proxy_ratio: float = 0.3
     proxy_cell: float = 0.0  # <= 0: proxy.default_cell_size (~10 anchors per occupied cell)
+    proxy_selection: str = "random"  # "random" (the paper's) | "spread" (greedy k-median per cell; proxy.py)
     predictor_hidden: int = 64
     predictor_blocks: int = 2
     predictor_warmup: int = 300  # L_recon-only predictor iterations at the stage switch (no rendering)
@@ -175,6 +176,11 @@ class FitConfig:
         if self.recon_loss not in RECON_LOSSES:
             raise ProxycodecError(f"unknown reconstruction loss {self.recon_loss!r}; choose from "
                                   f"{', '.join(RECON_LOSSES)}")
+        from .proxy import PROXY_SELECTIONS
+
+        if self.proxy_selection not in PROXY_SELECTIONS:
+            raise ProxycodecError(f"unknown proxy selection {self.proxy_selection!r}; choose from "
+                                  f"{', '.join(PROXY_SELECTIONS)}")
         if self.predict_offsets and self.predictor != "residual":
             raise ProxycodecError("predicting offsets needs the residual predictor")
         if self.predictor not in PREDICTOR_KINDS:
@@ -792,7 +798,7 @@ class Trainer(RunSchedule):
         c = self.cfg
         a = self.anchors
         cell = self.proxy_cell_size()
-        mask = select_proxies(a.positions, cell, c.proxy_ratio, c.seed)
+        mask = select_proxies(a.positions, cell, c.proxy_ratio, c.seed, c.proxy_selection)
         self.leaf_target = a.features.detach()[torch.from_numpy(~mask)].clone()
         if c.predict_offsets:
             self.leaf_offset_target = a.offsets.detach()[torch.from_numpy(~mask)].clone()

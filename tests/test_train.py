@@ -112,6 +112,8 @@ class TestConfig:
             FitConfig(embedding="bogus")
         with pytest.raises(ProxycodecError):
             FitConfig(xi_min=0.5, xi_max=0.2)
+        with pytest.raises(ProxycodecError, match="proxy selection"):
+            FitConfig(proxy_selection="fps")
 
     def test_json_round_trip(self):
         from proxycodec.train import FitConfig
@@ -282,6 +284,18 @@ class TestFit:
             encode(out, tmp_path / "po_store.pxc", EncodeConfig(predict_offsets=False))
         with pytest.raises(ProxycodecError, match="residual"):
             small_config(predict_offsets=True, predictor="proxy-leaf-mlp")
+
+    def test_spread_proxy_selection_is_the_stored_split(self, data, tmp_path):
+        from proxycodec.model import SceneModel, weights_path_for
+        from proxycodec.proxy import select_proxies
+        from proxycodec.train import load_predictor
+
+        out = tmp_path / "spread.ply"
+        _fit(data, out, small_config(iters=12, proxy_selection="spread", proxy_cell=0.3))
+        _, mask = load_predictor(weights_path_for(out))
+        pos = SceneModel.load(out).scene.positions
+        assert np.array_equal(mask, select_proxies(pos, 0.3, 0.3, 0, "spread"))
+        assert not np.array_equal(mask, select_proxies(pos, 0.3, 0.3, 0, "random"))
 
     def test_ablation_switches(self, data, tmp_path):
         from proxycodec.model import SceneModel
