@@ -23,6 +23,8 @@ def _stderr(msg: str) -> None:
 @click.option("--weights", type=click.Path(dir_okay=False), default=None,
               help="Decoder weights (default: SCENE.weights.pxc beside the PLY).")
 @click.option("--proxy-ratio", default=0.3, show_default=True, type=float, help="rho: share of proxies per cell.")
+@click.option("--proxy-selection", type=click.Choice(["random", "spread"]), default="random", show_default=True,
+              help="Proxies per cell at random (the paper's) or spread out (greedy k-median), when not as fitted.")
 @click.option("--cell-size", default=None, type=float,
               help="Proxy-selection cell size in world units (default: a voxel multiple giving ~10 anchors/cell).")
 @click.option("--feature-bits", default=8, show_default=True, type=int, help="Proxy features (1-16, 32 = float).")
@@ -46,9 +48,9 @@ def _stderr(msg: str) -> None:
               help="Ignore a stage-2 predictor/proxy split stored by `fit`; select proxies and fit anew.")
 @click.option("--json", "as_json", is_flag=True, help="Print the encode report as JSON on stdout.")
 @user_errors
-def encode(scene, out, weights, proxy_ratio, cell_size, feature_bits, offset_bits, scaling_bits, weights_dtype,
-           predict_offsets, max_cameras, drop_dead_offsets, predictor_iters, leaf_sample, zstd_level, seed, refit_predictor,
-           as_json) -> None:
+def encode(scene, out, weights, proxy_ratio, proxy_selection, cell_size, feature_bits, offset_bits, scaling_bits,
+           weights_dtype, predict_offsets, max_cameras, drop_dead_offsets, predictor_iters, leaf_sample, zstd_level, seed,
+           refit_predictor, as_json) -> None:
     """Compress an anchor scene (Scaffold-GS PLY + weights sidecar) to a proxy-anchor container.
 
     The residual predictor is fitted here on the scene's own features (L_recon). A predictor trained jointly with
@@ -58,12 +60,11 @@ def encode(scene, out, weights, proxy_ratio, cell_size, feature_bits, offset_bit
 
     out = out or str(Path(scene).with_suffix(".pxc"))
     source = (scene, weights) if weights else scene
-    r = codec.encode(source, out, proxy_ratio=proxy_ratio, cell_size=cell_size, feature_bits=feature_bits,
-                     offset_bits=offset_bits, scaling_bits=scaling_bits, weights_dtype=weights_dtype,
-                     predict_offsets=predict_offsets, max_cameras=max_cameras, predictor_iters=predictor_iters, leaf_sample=leaf_sample,
-                     zstd_level=zstd_level,
-                     seed=seed, use_fitted=not refit_predictor, drop_dead_offsets=drop_dead_offsets,
-                     progress=_stderr)
+    r = codec.encode(source, out, proxy_ratio=proxy_ratio, proxy_selection=proxy_selection, cell_size=cell_size,
+                     feature_bits=feature_bits, offset_bits=offset_bits, scaling_bits=scaling_bits,
+                     weights_dtype=weights_dtype, predict_offsets=predict_offsets, max_cameras=max_cameras,
+                     predictor_iters=predictor_iters, leaf_sample=leaf_sample, zstd_level=zstd_level, seed=seed,
+                     use_fitted=not refit_predictor, drop_dead_offsets=drop_dead_offsets, progress=_stderr)
     if as_json:
         click.echo(json.dumps(r.to_json(), indent=2))
     else:

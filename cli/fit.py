@@ -39,6 +39,9 @@ _no_undistort_option = click.option(
 @click.option("--fixed-res", is_flag=True, help="Ablation: train at 100% only (no random resolution).")
 @click.option("--no-proxies", is_flag=True, help="Ablation: Scaffold-GS only (no proxy anchors / predictor).")
 @click.option("--proxy-ratio", type=float, default=0.3, show_default=True, help="Stage 2: rho, share of proxies per cell.")
+@click.option("--proxy-selection", type=click.Choice(["random", "spread"]), default="random", show_default=True,
+              help="Stage 2: how each cell's proxies are picked: at random (the paper's) or spread out over the cell "
+                   "(greedy k-median: leaves closer to their proxies).")
 @click.option("--predictor-hidden", type=int, default=64, show_default=True, help="Stage 2: residual predictor width.")
 @click.option("--predictor-blocks", type=int, default=2, show_default=True,
               help="Stage 2: residual predictor depth (residual blocks).")
@@ -84,7 +87,7 @@ _no_undistort_option = click.option(
               help="With --explicit: spherical-harmonics degree of the Gaussians' colours.")
 @user_errors
 def fit(dataset, out, iters, time_budget, max_width, seed, no_gate, embedding, fixed_res, no_proxies, proxy_ratio,
-        predictor_hidden, predictor_blocks, predictor_warmup, predictor_context, predict_offsets, stage2_start, recon_loss,
+        proxy_selection, predictor_hidden, predictor_blocks, predictor_warmup, predictor_context, predict_offsets, stage2_start, recon_loss,
         lambda_recon, predictor_kind, gate_kappa, gate_eta, voxel_size, init_points, images, test_every,
         no_undistort, resume, checkpoint_every, keep_checkpoint, backend, explicit, sh_degree) -> None:
     """Train an anchor scene on DATASET (Blender or COLMAP folder, detected by its files) and write OUT
@@ -112,7 +115,7 @@ def fit(dataset, out, iters, time_budget, max_width, seed, no_gate, embedding, f
                     embedding=embedding, fixed_res=fixed_res, proxies=not no_proxies, voxel_size=voxel_size,
                     init_points=init_points, checkpoint_every=checkpoint_every, backend=backend,
                     recon_loss=recon_loss, lambda_recon_fixed=lambda_recon_fixed, predictor=predictor_kind,
-                    gate_kappa=gate_kappa, gate_eta=gate_eta, proxy_ratio=proxy_ratio,
+                    gate_kappa=gate_kappa, gate_eta=gate_eta, proxy_ratio=proxy_ratio, proxy_selection=proxy_selection,
                     predictor_hidden=predictor_hidden, predictor_blocks=predictor_blocks,
                     predictor_warmup=predictor_warmup, predictor_context=predictor_context,
                     predict_offsets=predict_offsets,

@@ -6,7 +6,8 @@ Layout, all float32, in this order (``GaussianModel.construct_list_of_attributes
     f_dc_0 f_dc_1 f_dc_2                  SH DC coefficient per colour channel
     f_rest_0 .. f_rest_{3(n-1)-1}         higher SH coefficients, CHANNEL-MAJOR: f_rest_{c*(n-1)+j} is
                                           coefficient j+1 of channel c, with n = (degree+1)^2
-    opacity                               opacity logit
+    opacity                               opacity logit (+-inf, a saturated alpha of 1 or 0, is read as
+                                          +-SATURATED_LOGIT; NaN is refused)
     scale_0 scale_1 scale_2               log scales
     rot_0 .. rot_3                        rotation quaternion wxyz (not necessarily normalised)
 
@@ -30,12 +31,19 @@ __all__ = [
     "write_inria_ply",
     "inria_attribute_names",
     "SH_C0",
+    "SATURATED_LOGIT",
     "rgb_to_sh_dc",
     "sh_dc_to_rgb",
 ]
 
 #: The degree-0 real spherical harmonic, 1 / (2 sqrt(pi)).
 SH_C0 = 0.28209479177387814
+
+#: An opacity logit of +-inf in a file (SPZ -> PLY converters such as splat-transform write +inf for an alpha byte of
+#: 255, since logit(1) is infinite) is read as +-this: sigmoid(30) is 1.0 in float32, so the Gaussian renders as the
+#: file says, and every value in memory stays finite. gsplat / 3DGS loaders read such files the same way
+#: (sigmoid(inf) = 1).
+SATURATED_LOGIT = 30.0
 
 #: Number of f_rest properties -> SH degree.
 _REST_TO_DEGREE = {0: 0, 9: 1, 24: 2, 45: 3}
@@ -198,7 +206,11 @@ def read_inria_ply(path: str | os.PathLike) -> GaussianPly:
     means = columns(path, data, ["x", "y", "z"], field="means", finite=True)
     f_dc = columns(path, data, dc, field="f_dc", finite=True)
     f_rest = columns(path, data, rest, field="f_rest", finite=True)
-    op = columns(path, data, ["opacity"], field="opacity", finite=True)[:, 0]
+    op = columns(path, data, ["opacity"], field="opacity", finite=False)[:, 0]
+    if np.isnan(op).any():
+        raise ProxycodecError(f"PLY field 'opacity' holds NaN (first at vertex {int(np.flatnonzero(np.isnan(op))[0])})",
+                              path)
+    op = np.where(np.isinf(op), np.copysign(np.float32(SATURATED_LOGIT), op), op).astype(np.float32)
     sc = columns(path, data, ["scale_0", "scale_1", "scale_2"], field="scales", finite=True)
     q = columns(path, data, ["rot_0", "rot_1", "rot_2", "rot_3"], field="quats", finite=True)
     nrm = columns(path, data, ["nx", "ny", "nz"], field="normals", finite=False) if has_normals else None

@@ -56,6 +56,7 @@ class EncodeConfig:
     proxy_ratio: float = 0.3
     cell_size: float | None = None  # world units; None: a multiple of the voxel size giving ~cell_target anchors/cell
     cell_target: float = 10.0
+    proxy_selection: str = "random"  # "random" (the paper's) | "spread" (proxy.select_proxies), when not as fitted
     feature_bits: int = 8  # proxy features, uniform per channel (32 = float32)
     offset_bits: int = 8  # 6 bits: -10% file on lego but -0.16 dB (SPEC.md)
     scaling_bits: int = 8
@@ -92,6 +93,11 @@ class EncodeConfig:
             raise ProxycodecError(f"weights dtype must be f16, f32 or q8, got {self.weights_dtype!r}")
         if self.max_cameras < 0:
             raise ProxycodecError("max cameras must be >= 0")
+        from .proxy import PROXY_SELECTIONS
+
+        if self.proxy_selection not in PROXY_SELECTIONS:
+            raise ProxycodecError(f"proxy selection must be one of {', '.join(PROXY_SELECTIONS)}, "
+                                  f"got {self.proxy_selection!r}")
         if not (1 <= self.zstd_level <= 22):
             raise ProxycodecError(f"zstd level must be 1..22, got {self.zstd_level}")
         if self.predictor_iters < 0:
@@ -329,7 +335,7 @@ def encode(
         cfg = replace(cfg, predictor_iters=0, predict_offsets=fitted_po)
         say("using the stage-2 proxies and predictor from the weights file (no refit)")
     else:
-        mask = select_proxies(pos_sorted, cell_size, cfg.proxy_ratio, cfg.seed)
+        mask = select_proxies(pos_sorted, cell_size, cfg.proxy_ratio, cfg.seed, cfg.proxy_selection)
     if cfg.predict_offsets is None:
         cfg = replace(cfg, predict_offsets=False)
     P = int(mask.sum())

@@ -1,8 +1,9 @@
 """Proxy anchors and the residual anchor predictor (METHOD.md section 3).
 
 - ``select_proxies``: density-aware selection (supplement 7.3, eq. 15-16). Cell index g_i = floor(v_i / eps); in every
-  occupied cell ceil(rho * |G_l|) anchors are drawn uniformly at random. Deterministic for a seed and independent of
-  the order the anchors come in (each anchor's random key is drawn in lexicographic position order).
+  occupied cell ceil(rho * |G_l|) anchors are drawn uniformly at random (the paper's), or, with ``method="spread"``,
+  picked by a greedy k-median within the cell (ours: leaves closer to their proxies). Deterministic for a seed and
+  independent of the order the anchors come in (each anchor's random key is drawn in lexicographic position order).
 - ``nearest_proxy``: for every anchor, the index of its nearest proxy (a proxy maps to itself). Ties are broken
   explicitly (smallest squared distance, then smallest index) so encoder and decoder always agree.
 - ``ResidualPredictor``: [f_k (F), PE(log distance), PE(unit direction proxy->leaf)] -> encoder -> residual MLP blocks
@@ -37,8 +38,8 @@ from .weights import load_state_arrays, state_arrays
 __all__ = [
     "default_cell_size", "select_proxies", "nearest_proxy", "nearest_proxies", "nearest_column", "PredictorConfig",
     "ResidualPredictor", "predictor_inputs", "predictor_geometry", "recon_loss", "offset_recon_loss", "TrainConfig",
-    "TrainResult", "train_predictor", "proxies_per_cell", "RECON_LOSSES", "PREDICTOR_KINDS", "ProxyLeafConfig",
-    "ProxyLeafMLP", "predictor_from_json",
+    "TrainResult", "train_predictor", "proxies_per_cell", "PROXY_SELECTIONS", "RECON_LOSSES", "PREDICTOR_KINDS",
+    "ProxyLeafConfig", "ProxyLeafMLP", "predictor_from_json",
 ]
 
 
@@ -76,13 +77,26 @@ def default_cell_size(positions, voxel_size: float, target: float = 10.0, max_mu
     return float(best * voxel_size)
 
 
-def select_proxies(positions, cell_size: float, ratio: float = 0.3, seed: int = 0) -> np.ndarray:
-    """[M] bool mask of proxy anchors: ceil(ratio * |G_l|) drawn uniformly at random in every occupied cell."""
+#: Proxy selection methods: "random" is the paper's ([S 7.3]: ceil(rho |G_l|) uniformly at random per cell);
+#: "spread" picks the same number per cell, greedily minimising the sum of each anchor's distance to its nearest
+#: proxy in the cell (a greedy k-median), so that leaves sit closer to the proxy they are predicted from.
+PROXY_SELECTIONS = ("random", "spread")
+#: Cells with more anchors than this fall back to random selection under "spread" (its cost is O(n^2) per cell).
+SPREAD_MAX_CELL = 512
+
+
+def select_proxies(positions, cell_size: float, ratio: float = 0.3, seed: int = 0,
+                   method: str = "random") -> np.ndarray:
+    """[M] bool mask of proxy anchors: ceil(ratio * |G_l|) in every occupied cell, drawn uniformly at random
+    (``method="random"``, the paper's) or spread out over the cell (``"spread"``, a greedy k-median; ``seed`` then
+    only matters for cells above ``SPREAD_MAX_CELL`` anchors). Both are independent of the order of the anchors."""
     p = np.asarray(positions.detach().cpu() if isinstance(positions, torch.Tensor) else positions, dtype=np.float64)
     if not (0.0 < ratio <= 1.0):
         raise ProxycodecError(f"proxy ratio must be in (0, 1], got {ratio}")
     if not (math.isfinite(cell_size) and cell_size > 0):
         raise ProxycodecError(f"cell size must be positive, got {cell_size}")
+    if method not in PROXY_SELECTIONS:
+        raise ProxycodecError(f"proxy selection must be one of {', '.join(PROXY_SELECTIONS)}, got {method!r}")
     M = len(p)
     if M == 0:
         return np.zeros(0, dtype=bool)
@@ -91,13 +105,52 @@ def select_proxies(positions, cell_size: float, ratio: float = 0.3, seed: int = 
     canon = np.lexsort((p[:, 2], p[:, 1], p[:, 0]))
     key = np.empty(M)
     key[canon] = np.random.default_rng(seed).random(M)
-    order = np.lexsort((key, cell))  # by cell, random within
     counts = np.bincount(cell)
+    quota = proxies_per_cell(counts, ratio)
+    if method == "spread":
+        rank_canon = np.empty(M, dtype=np.int64)
+        rank_canon[canon] = np.arange(M)
+        key = np.where(counts[cell] > SPREAD_MAX_CELL, key, _spread_keys(p, cell, counts, quota, rank_canon))
+    order = np.lexsort((key, cell))  # by cell, smallest keys first
     starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
     rank = np.arange(M) - starts[cell[order]]
     mask = np.zeros(M, dtype=bool)
-    mask[order] = rank < proxies_per_cell(counts, ratio)[cell[order]]
+    mask[order] = rank < quota[cell[order]]
     return mask
+
+
+def _spread_keys(p: np.ndarray, cell: np.ndarray, counts: np.ndarray, quota: np.ndarray,
+                 rank_canon: np.ndarray) -> np.ndarray:
+    """[M] keys in [0, 1): the greedy k-median's picks of every cell (up to ``SPREAD_MAX_CELL`` anchors) get keys
+    below 0.5 in pick order, the rest 0.5 and up. Cells of the same size are processed together: [C, n, n] distances,
+    then ``quota`` greedy steps, each adding the anchor that most lowers the sum of distances to the nearest pick.
+    Within a cell anchors are taken in lexicographic position order, so ties (argmin: first) do not depend on the
+    input order."""
+    keys = np.full(len(p), 0.75)
+    order = np.lexsort((rank_canon, cell))  # by cell, canonical position order within
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    for n in np.unique(counts):
+        if n > SPREAD_MAX_CELL:
+            continue
+        all_cells = np.nonzero(counts == n)[0]
+        k = int(quota[all_cells[0]])
+        chunk = max(1, (1 << 21) // (n * n))  # bounds the [C, n, n] distance block to ~16 MB
+        for c0 in range(0, len(all_cells), chunk):
+            cells = all_cells[c0:c0 + chunk]
+            idx = order[starts[cells][:, None] + np.arange(n)[None, :]]  # [C, n] anchor indices
+            q = p[idx]  # [C, n, 3]
+            D = np.sqrt(((q[:, :, None, :] - q[:, None, :, :]) ** 2).sum(-1))  # [C, n, n]
+            cur = np.full((len(cells), n), np.inf)
+            picked = np.zeros((len(cells), n), dtype=bool)
+            rows = np.arange(len(cells))
+            for step in range(k):
+                cost = np.minimum(cur[:, None, :], D).sum(-1)  # [C, n]: total distance if candidate j were added
+                cost[picked] = np.inf
+                j = np.argmin(cost, axis=1)
+                picked[rows, j] = True
+                cur = np.minimum(cur, D[rows, j])
+                keys[idx[rows, j]] = 0.5 * step / k
+    return keys
 
 
 #: Below this many (leaf, proxy) pairs the nearest proxy is found by exhaustive search, above it by a kd-tree

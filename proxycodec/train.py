@@ -142,6 +142,7 @@ class FitConfig:
     leaf_sample: float = 0.2
     proxy_ratio: float = 0.3
     proxy_cell: float = 0.0  # <= 0: proxy.default_cell_size (~10 anchors per occupied cell)
+    proxy_selection: str = "random"  # "random" (the paper's) | "spread" (greedy k-median per cell; proxy.py)
     predictor_hidden: int = 64
     predictor_blocks: int = 2
     predictor_warmup: int = 300  # L_recon-only predictor iterations at the stage switch (no rendering)
@@ -175,6 +176,11 @@ class FitConfig:
         if self.recon_loss not in RECON_LOSSES:
             raise ProxycodecError(f"unknown reconstruction loss {self.recon_loss!r}; choose from "
                                   f"{', '.join(RECON_LOSSES)}")
+        from .proxy import PROXY_SELECTIONS
+
+        if self.proxy_selection not in PROXY_SELECTIONS:
+            raise ProxycodecError(f"unknown proxy selection {self.proxy_selection!r}; choose from "
+                                  f"{', '.join(PROXY_SELECTIONS)}")
         if self.predict_offsets and self.predictor != "residual":
             raise ProxycodecError("predicting offsets needs the residual predictor")
         if self.predictor not in PREDICTOR_KINDS:
@@ -554,9 +560,11 @@ class Trainer(RunSchedule):
         return self.cfg.lambda_recon[0] if p < self.cfg.recon_switch else self.cfg.lambda_recon[1]
 
     # ------------------------------------------------------------------ one iteration
-    def _features_for(self, cam: Camera) -> tuple[torch.Tensor | None, torch.Tensor | None, torch.Tensor]:
+    def _features_for(self, cam: Camera, with_recon: bool = True
+                      ) -> tuple[torch.Tensor | None, torch.Tensor | None, torch.Tensor]:
         """Stage 2: the feature (and, with ``predict_offsets``, offset) tables with the visible leaves' rows
-        predicted; and L_recon."""
+        predicted; and L_recon (0 without computing it when ``with_recon`` is False, i.e. its weight is 0: the
+        leaf sample is still drawn, so the random stream does not depend on the weight)."""
         zero = torch.zeros(())
         if self.stage < 2 or self.predictor is None:
             return None, None, zero
@@ -576,6 +584,8 @@ class Trainer(RunSchedule):
         if n == 0:
             return feats, offs, zero
         sel = torch.from_numpy(self.rng.choice(L, n, replace=False)).long()
+        if not with_recon:
+            return feats, offs, zero
         from .proxy import offset_recon_loss, recon_loss
 
         pred_s, pred_so = self.predictor.predict(a.positions, a.features, self.nearest, self.leaves[sel],
@@ -594,7 +604,8 @@ class Trainer(RunSchedule):
         xi = 1.0 if c.fixed_res else float(c.xi_min + (c.xi_max - c.xi_min) * self.rng.random())
         cam = self.data.cameras[i]
         gt = self.images.get(i, xi)  # [h, w, 3] anti-aliased to camera.scaled(xi)
-        feats, offs, l_recon = self._features_for(cam.scaled(xi))
+        lam = self.lambda_recon(p) if self.stage >= 2 else 0.0
+        feats, offs, l_recon = self._features_for(cam.scaled(xi), with_recon=lam != 0.0)
         r = render_scene(self.anchors.scene(), self.decoder, cam, xi, background=self.bg, backend=c.backend,
                          features=feats, offsets=offs)
         img = r.image
@@ -603,8 +614,8 @@ class Trainer(RunSchedule):
         g = r.gaussians
         if g.count:
             loss = loss + c.lambda_volume * g.scales.prod(dim=1).mean()
-        if self.stage >= 2:
-            loss = loss + self.lambda_recon(p) * l_recon
+        if lam != 0.0:
+            loss = loss + lam * l_recon
         means2d = r.projected.means2d
         if means2d.requires_grad:
             means2d.retain_grad()
@@ -792,7 +803,7 @@ class Trainer(RunSchedule):
         c = self.cfg
         a = self.anchors
         cell = self.proxy_cell_size()
-        mask = select_proxies(a.positions, cell, c.proxy_ratio, c.seed)
+        mask = select_proxies(a.positions, cell, c.proxy_ratio, c.seed, c.proxy_selection)
         self.leaf_target = a.features.detach()[torch.from_numpy(~mask)].clone()
         if c.predict_offsets:
             self.leaf_offset_target = a.offsets.detach()[torch.from_numpy(~mask)].clone()

@@ -253,11 +253,29 @@ class TestFittedPredictor:
         assert r2.meta["proxy"]["source"] == "encode"
 
 
+def test_spread_proxy_selection_reaches_the_container(tmp_path):
+    """encode --proxy-selection spread: the container's proxies are select_proxies(..., "spread") of its anchors
+    (same count per cell as random, other anchors), and a decoder needs nothing to know which was used."""
+    from proxycodec.proxy import select_proxies
+    from proxycodec.sections import stored_anchors
+
+    m = tiny_model(300)
+    got = {}
+    for method in ("random", "spread"):
+        r = codec.encode(m, tmp_path / f"{method}.pxc", proxy_selection=method, cell_size=0.2, **FAST)
+        c = codec.load(r.path)
+        a = stored_anchors(c.meta, c.sections, ProxycodecError)
+        assert np.array_equal(a.proxy_mask, select_proxies(a.positions, 0.2, 0.3, 0, method))
+        assert np.isfinite(codec.decode(r.path).scene.features.numpy()).all()
+        got[method] = a.proxy_mask
+    assert got["random"].sum() == got["spread"].sum() and not np.array_equal(got["random"], got["spread"])
+
+
 class TestEncodeErrors:
     def test_bad_knobs(self, tmp_path):
         m = tiny_model(50)
         for kw in ({"proxy_ratio": 0.0}, {"feature_bits": 17}, {"weights_dtype": "f8"}, {"zstd_level": 0},
-                   {"cell_size": -1.0}, {"nonsense": 1}):
+                   {"cell_size": -1.0}, {"proxy_selection": "fps"}, {"nonsense": 1}):
             with pytest.raises(ProxycodecError):
                 codec.encode(m, tmp_path / "x.pxc", **kw)
         assert not (tmp_path / "x.pxc").exists()

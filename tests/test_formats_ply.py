@@ -484,6 +484,26 @@ class TestInriaPly:
         for k in ("nx", "ny", "nz"):
             assert np.all(data[k] == 0)
 
+    def test_infinite_opacity_logits_read_as_saturated(self, tmp_path):
+        """splat-transform's SPZ -> PLY writes logit(1) = +inf for an alpha byte of 255: read as a finite logit whose
+        sigmoid is exactly 1 (and -inf as one whose sigmoid is 0 to float32 precision); finite values, however large,
+        and the other fields stay exact."""
+        from proxycodec.formats.inria_ply import SATURATED_LOGIT
+
+        g = _random_gaussians(4, 2)
+        write_inria_ply(tmp_path / "g.ply", g)
+        _, data = read_ply(tmp_path / "g.ply")
+        data["opacity"][1], data["opacity"][3], data["opacity"][2] = np.inf, -np.inf, 44.0
+        g.opacities[2] = 44.0
+        write_ply(tmp_path / "inf.ply", data)
+        got = read_inria_ply(tmp_path / "inf.ply")
+        assert np.isfinite(got.opacities).all()
+        assert got.opacities[1] == SATURATED_LOGIT and got.opacities[3] == -SATURATED_LOGIT
+        sig = 1 / (1 + np.exp(-got.opacities.astype(np.float32)))
+        assert sig[1] == np.float32(1.0) and sig[3] < 1e-12
+        assert np.array_equal(got.opacities[[0, 2]], g.opacities[[0, 2]])
+        assert np.array_equal(got.means, g.means) and np.array_equal(got.sh, g.sh)
+
     def test_errors(self, tmp_path):
         write_inria_ply(tmp_path / "g.ply", _random_gaussians(3, 1))
         _, data = read_ply(tmp_path / "g.ply")

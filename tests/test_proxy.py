@@ -72,6 +72,72 @@ class TestSelectProxies:
             select_proxies(p, -1.0, 0.3, 0)
         assert select_proxies(np.zeros((0, 3)), 0.1, 0.3, 0).shape == (0,)
 
+    @pytest.mark.parametrize("ratio", [0.3, 0.1, 0.5, 1.0])
+    def test_spread_keeps_the_counts_and_is_order_independent(self, ratio):
+        p = grid_points(600)
+        a = select_proxies(p, 0.15, ratio, seed=3, method="spread")
+        r = select_proxies(p, 0.15, ratio, seed=3)
+        cells = np.unique(np.floor(p.astype(np.float64) / 0.15).astype(np.int64), axis=0, return_inverse=True)[1]
+        cells = cells.reshape(-1)
+        assert np.array_equal(np.bincount(cells, a), np.bincount(cells, r))  # ceil(rho n) per cell, as random
+        perm = np.random.default_rng(1).permutation(len(p))
+        assert np.array_equal(a[perm], select_proxies(p[perm], 0.15, ratio, seed=3, method="spread"))
+        assert np.array_equal(a, select_proxies(p, 0.15, ratio, seed=99, method="spread"))  # seed-free
+
+    @staticmethod
+    def greedy_k_median(p, eps, ratio):
+        """Reference: per cell, anchors in lexicographic order, k greedy steps, each adding the candidate with the
+        smallest sum of distances to the nearest pick (first such candidate on ties)."""
+        p = p.astype(np.float64)
+        keys = [tuple(k) for k in np.floor(p / eps).astype(np.int64)]
+        mask = np.zeros(len(p), dtype=bool)
+        for key in set(keys):
+            idx = [i for i in range(len(p)) if keys[i] == key]
+            idx.sort(key=lambda i: tuple(p[i]))
+            k = math.ceil(Fraction(str(ratio)) * len(idx))
+            cur = [math.inf] * len(idx)
+            picked = set()
+            for _ in range(k):
+                best, best_cost = None, math.inf
+                for j in range(len(idx)):
+                    if j in picked:
+                        continue
+                    cost = sum(min(cur[t], float(np.linalg.norm(p[idx[t]] - p[idx[j]]))) for t in range(len(idx)))
+                    if cost < best_cost:
+                        best, best_cost = j, cost
+                picked.add(best)
+                cur = [min(cur[t], float(np.linalg.norm(p[idx[t]] - p[idx[best]]))) for t in range(len(idx))]
+            mask[[idx[j] for j in picked]] = True
+        return mask
+
+    @pytest.mark.parametrize("seed", [0, 1])
+    def test_spread_matches_a_greedy_k_median_reference(self, seed):
+        rng = np.random.default_rng(seed)
+        p = rng.normal(size=(160, 3)).astype(np.float32)  # off-grid: no distance ties
+        got = select_proxies(p, 0.7, 0.3, seed=0, method="spread")
+        assert np.array_equal(got, self.greedy_k_median(p, 0.7, 0.3))
+
+    def test_spread_falls_back_to_random_in_oversized_cells(self, monkeypatch):
+        import proxycodec.proxy as proxy_mod
+
+        p = grid_points(300)
+        monkeypatch.setattr(proxy_mod, "SPREAD_MAX_CELL", 0)
+        assert np.array_equal(select_proxies(p, 0.15, 0.3, seed=5, method="spread"),
+                              select_proxies(p, 0.15, 0.3, seed=5))
+
+    def test_spread_puts_leaves_closer_to_their_proxies(self):
+        p = grid_points(1500, size=(24, 24, 6))
+        dist = {}
+        for method in ("random", "spread"):
+            mask = select_proxies(p, 0.2, 0.3, seed=0, method=method)
+            near = nearest_proxy(p, mask)
+            dist[method] = float(np.linalg.norm(p - p[near], axis=1)[~mask].mean())
+        assert dist["spread"] < 0.95 * dist["random"]
+
+    def test_unknown_selection_is_refused(self):
+        with pytest.raises(ProxycodecError, match="proxy selection"):
+            select_proxies(grid_points(20), 0.1, 0.3, 0, method="fps")
+
     def test_default_cell_size_holds_about_ten_anchors(self):
         voxel = 0.05
         cells = np.stack(np.meshgrid(np.arange(40), np.arange(40), [0], indexing="ij"), -1).reshape(-1, 3)

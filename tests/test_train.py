@@ -112,6 +112,8 @@ class TestConfig:
             FitConfig(embedding="bogus")
         with pytest.raises(ProxycodecError):
             FitConfig(xi_min=0.5, xi_max=0.2)
+        with pytest.raises(ProxycodecError, match="proxy selection"):
+            FitConfig(proxy_selection="fps")
 
     def test_json_round_trip(self):
         from proxycodec.train import FitConfig
@@ -282,6 +284,43 @@ class TestFit:
             encode(out, tmp_path / "po_store.pxc", EncodeConfig(predict_offsets=False))
         with pytest.raises(ProxycodecError, match="residual"):
             small_config(predict_offsets=True, predictor="proxy-leaf-mlp")
+
+    def test_l_recon_at_weight_zero_is_skipped_without_changing_the_run(self, data, monkeypatch):
+        """lambda_recon 0 (the default) skips L_recon's predictor pass; the run is bit for bit the one that
+        computes it and adds 0 times it (the leaf sample is still drawn)."""
+        from proxycodec.train import Trainer
+
+        calls = []
+        orig = Trainer._features_for
+
+        def run(force):
+            def spy(self, cam, with_recon=True):
+                calls.append(with_recon)
+                return orig(self, cam, True if force else with_recon)
+
+            monkeypatch.setattr(Trainer, "_features_for", spy)
+            tr = Trainer(data, small_config(iters=20), "tiny")
+            losses = [tr.train_step()["loss"] for _ in range(20)]
+            assert tr.stage == 2
+            return losses, tr.anchors.features.detach().clone(), [p.detach().clone()
+                                                                  for p in tr.predictor.parameters()]
+
+        a, b = run(False), run(True)
+        assert calls and not any(calls)  # the default never asked for L_recon
+        assert a[0] == b[0] and torch.equal(a[1], b[1])
+        assert all(torch.equal(x, y) for x, y in zip(a[2], b[2]))
+
+    def test_spread_proxy_selection_is_the_stored_split(self, data, tmp_path):
+        from proxycodec.model import SceneModel, weights_path_for
+        from proxycodec.proxy import select_proxies
+        from proxycodec.train import load_predictor
+
+        out = tmp_path / "spread.ply"
+        _fit(data, out, small_config(iters=12, proxy_selection="spread", proxy_cell=0.3))
+        _, mask = load_predictor(weights_path_for(out))
+        pos = SceneModel.load(out).scene.positions
+        assert np.array_equal(mask, select_proxies(pos, 0.3, 0.3, 0, "spread"))
+        assert not np.array_equal(mask, select_proxies(pos, 0.3, 0.3, 0, "random"))
 
     def test_ablation_switches(self, data, tmp_path):
         from proxycodec.model import SceneModel
