@@ -79,6 +79,11 @@ ABLATIONS = [
     ("gate kappa 4, eta 0.5", {"gate_eta": 0.5}, "model", "[S Table 11] NeRF-Syn 29.271 vs 31.056", 29.271 - 31.056),
     ("gate kappa 5, eta 0.25", {"gate_kappa": 5.0}, "model", "[S Table 11] NeRF-Syn 31.002 vs 31.056",
      31.002 - 31.056),
+    # ours, beside the paper's: the stage-2 options of SPEC section 5 (issue #4's proxies' cost)
+    ("proxy selection spread (ours; the paper draws at random)", {"proxy_selection": "spread"}, "model",
+     "[S 7.3] the paper draws proxies at random only", None),
+    ("predictor context 4 proxies (ours; the paper's sees 1)", {"predictor_context": 4}, "model",
+     "[S 7.1] the paper's predictor sees the nearest proxy only", None),
 ]
 QUICK_ABLATIONS = ("coverage gate off (trained and rendered without)",
                    "coverage gate post hoc (trained without, rendered with)", "L_recon MSE",
