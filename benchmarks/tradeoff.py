@@ -47,7 +47,7 @@ SCENES = {
 QUICK = {"lego": {"max_width": 160, "views": 2, "budgets": [20, 60]}}
 # The ablations' fits: reference width and iterations (each its own fit, the reference included).
 ABLATION = {"max_width": 200, "iters": 3000}
-QUICK_ABLATION = {"max_width": 100, "iters": 120}
+QUICK_ABLATION = {"max_width": 100, "iters": 400}
 ABLATION_SCENES = ("lego",)
 
 # The paper's ablations: (name, FitConfig overrides, eval gate mode, paper figure, paper delta vs ours in dB on the
@@ -226,7 +226,8 @@ def main(argv=None) -> int:
             ab_data = {**data_args, "max_width": ab_w}
 
             def ab_fit(tag, seed=args.seed, **over):
-                ply = wd / f"ablation_{tag}.ply"
+                # the settings in the name: an evaluation step is keyed by its arguments, the file's path among them
+                ply = wd / f"ablation_{tag} {ab_w}px {ab_it}it.ply"
                 config = {**fit_config(0, seed, **over), "iters": ab_it, "time_budget": None}
                 rec = runner.step(f"fit:{n}/ablation {tag} {ab_w}px {ab_it}it", "fit",
                                   {**ab_data, "out": str(ply), "config": config}, outputs=[ply],
