@@ -93,11 +93,9 @@ class EncodeConfig:
             raise ProxycodecError(f"weights dtype must be f16, f32 or q8, got {self.weights_dtype!r}")
         if self.max_cameras < 0:
             raise ProxycodecError("max cameras must be >= 0")
-        from .proxy import PROXY_SELECTIONS
+        from .proxy import check_proxy_selection
 
-        if self.proxy_selection not in PROXY_SELECTIONS:
-            raise ProxycodecError(f"proxy selection must be one of {', '.join(PROXY_SELECTIONS)}, "
-                                  f"got {self.proxy_selection!r}")
+        check_proxy_selection(self.proxy_selection)
         if not (1 <= self.zstd_level <= 22):
             raise ProxycodecError(f"zstd level must be 1..22, got {self.zstd_level}")
         if self.predictor_iters < 0:

@@ -38,8 +38,8 @@ from .weights import load_state_arrays, state_arrays
 __all__ = [
     "default_cell_size", "select_proxies", "nearest_proxy", "nearest_proxies", "nearest_column", "PredictorConfig",
     "ResidualPredictor", "predictor_inputs", "predictor_geometry", "recon_loss", "offset_recon_loss", "TrainConfig",
-    "TrainResult", "train_predictor", "proxies_per_cell", "PROXY_SELECTIONS", "RECON_LOSSES", "PREDICTOR_KINDS",
-    "ProxyLeafConfig", "ProxyLeafMLP", "predictor_from_json",
+    "TrainResult", "train_predictor", "proxies_per_cell", "PROXY_SELECTIONS", "check_proxy_selection", "RECON_LOSSES",
+    "PREDICTOR_KINDS", "ProxyLeafConfig", "ProxyLeafMLP", "predictor_from_json",
 ]
 
 
@@ -85,6 +85,13 @@ PROXY_SELECTIONS = ("random", "spread")
 SPREAD_MAX_CELL = 512
 
 
+def check_proxy_selection(method: str) -> None:
+    """Refuses a proxy selection method other than ``PROXY_SELECTIONS`` (``select_proxies`` and the fit / encode
+    configurations, which check it before any work)."""
+    if method not in PROXY_SELECTIONS:
+        raise ProxycodecError(f"unknown proxy selection {method!r}; choose from {', '.join(PROXY_SELECTIONS)}")
+
+
 def select_proxies(positions, cell_size: float, ratio: float = 0.3, seed: int = 0,
                    method: str = "random") -> np.ndarray:
     """[M] bool mask of proxy anchors: ceil(ratio * |G_l|) in every occupied cell, drawn uniformly at random
@@ -95,8 +102,7 @@ def select_proxies(positions, cell_size: float, ratio: float = 0.3, seed: int = 
         raise ProxycodecError(f"proxy ratio must be in (0, 1], got {ratio}")
     if not (math.isfinite(cell_size) and cell_size > 0):
         raise ProxycodecError(f"cell size must be positive, got {cell_size}")
-    if method not in PROXY_SELECTIONS:
-        raise ProxycodecError(f"proxy selection must be one of {', '.join(PROXY_SELECTIONS)}, got {method!r}")
+    check_proxy_selection(method)
     M = len(p)
     if M == 0:
         return np.zeros(0, dtype=bool)
@@ -108,9 +114,7 @@ def select_proxies(positions, cell_size: float, ratio: float = 0.3, seed: int = 
     counts = np.bincount(cell)
     quota = proxies_per_cell(counts, ratio)
     if method == "spread":
-        rank_canon = np.empty(M, dtype=np.int64)
-        rank_canon[canon] = np.arange(M)
-        key = np.where(counts[cell] > SPREAD_MAX_CELL, key, _spread_keys(p, cell, counts, quota, rank_canon))
+        key = np.where(counts[cell] > SPREAD_MAX_CELL, key, _spread_keys(p, cell, counts, quota, canon))
     order = np.lexsort((key, cell))  # by cell, smallest keys first
     starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
     rank = np.arange(M) - starts[cell[order]]
@@ -120,14 +124,14 @@ def select_proxies(positions, cell_size: float, ratio: float = 0.3, seed: int = 
 
 
 def _spread_keys(p: np.ndarray, cell: np.ndarray, counts: np.ndarray, quota: np.ndarray,
-                 rank_canon: np.ndarray) -> np.ndarray:
+                 canon: np.ndarray) -> np.ndarray:
     """[M] keys in [0, 1): the greedy k-median's picks of every cell (up to ``SPREAD_MAX_CELL`` anchors) get keys
     below 0.5 in pick order, the rest 0.5 and up. Cells of the same size are processed together: [C, n, n] distances,
     then ``quota`` greedy steps, each adding the anchor that most lowers the sum of distances to the nearest pick.
-    Within a cell anchors are taken in lexicographic position order, so ties (argmin: first) do not depend on the
-    input order."""
+    Within a cell anchors are taken in lexicographic position order (``canon``), so ties (argmin: first) do not
+    depend on the input order."""
     keys = np.full(len(p), 0.75)
-    order = np.lexsort((rank_canon, cell))  # by cell, canonical position order within
+    order = canon[np.argsort(cell[canon], kind="stable")]  # by cell, canonical position order within
     starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
     for n in np.unique(counts):
         if n > SPREAD_MAX_CELL:

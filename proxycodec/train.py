@@ -171,16 +171,12 @@ class FitConfig:
                         context=self.predictor_context)  # validates width, depth and context
         if self.predictor_warmup < 0:
             raise ProxycodecError(f"predictor warm-up must be >= 0 iterations, got {self.predictor_warmup}")
-        from .proxy import PREDICTOR_KINDS, RECON_LOSSES
+        from .proxy import PREDICTOR_KINDS, RECON_LOSSES, check_proxy_selection
 
         if self.recon_loss not in RECON_LOSSES:
             raise ProxycodecError(f"unknown reconstruction loss {self.recon_loss!r}; choose from "
                                   f"{', '.join(RECON_LOSSES)}")
-        from .proxy import PROXY_SELECTIONS
-
-        if self.proxy_selection not in PROXY_SELECTIONS:
-            raise ProxycodecError(f"unknown proxy selection {self.proxy_selection!r}; choose from "
-                                  f"{', '.join(PROXY_SELECTIONS)}")
+        check_proxy_selection(self.proxy_selection)
         if self.predict_offsets and self.predictor != "residual":
             raise ProxycodecError("predicting offsets needs the residual predictor")
         if self.predictor not in PREDICTOR_KINDS:

@@ -14,7 +14,6 @@ import torch
 from click.testing import CliRunner
 from proxycodec.cli.main import cli
 from proxycodec.formats.container import ContainerError, read_container, write_container
-from proxycodec.sections import pack_weights, read_scene_container
 from test_codec import FAST, tiny_model
 
 from proxycodec import codec, lite
@@ -24,6 +23,7 @@ from proxycodec.model import SceneModel, image_to_uint8
 from proxycodec.netconfig import PredictorConfig
 from proxycodec.proxy import ResidualPredictor
 from proxycodec.render.project import GateConfig
+from proxycodec.sections import pack_weights, read_scene_container
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 

@@ -118,10 +118,8 @@ class TestSelectProxies:
         assert np.array_equal(got, self.greedy_k_median(p, 0.7, 0.3))
 
     def test_spread_falls_back_to_random_in_oversized_cells(self, monkeypatch):
-        import proxycodec.proxy as proxy_mod
-
         p = grid_points(300)
-        monkeypatch.setattr(proxy_mod, "SPREAD_MAX_CELL", 0)
+        monkeypatch.setattr("proxycodec.proxy.SPREAD_MAX_CELL", 0)
         assert np.array_equal(select_proxies(p, 0.15, 0.3, seed=5, method="spread"),
                               select_proxies(p, 0.15, 0.3, seed=5))
 
