@@ -289,8 +289,8 @@ def ablation_markdown(rows: list[dict], meta: dict) -> list[str]:
            "Each ablation is a fit of the fixed number of iterations below, at the reference width below, with one "
            "setting changed, evaluated uncompressed (anchor PLY + weights; the PLY holds the leaves' predicted "
            "features) on the same views as the reference: the default fit of the same settings. Iteration budgets "
-           "give every fit the same length whatever the machine's load (multi-threaded CPU kernels still make "
-           "repeated runs differ slightly, SPEC section 5); the reference's second seed shows the run-to-run noise. "
+           "give every fit the same length whatever the machine's load, and the same bytes on a re-run; the "
+           "reference's second seed shows how much one seed's draw (initialisation, views, resolutions) moves it. "
            "Paper deltas "
            "are on other data and GPU-length training (30k iterations); 'same sign' compares directions only, and "
            "says 'within noise' where |Δ| is no larger than the second seed's.", ""]

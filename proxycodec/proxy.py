@@ -202,6 +202,14 @@ def nearest_column(nearest: torch.Tensor) -> torch.Tensor:
     return nearest[:, 0] if nearest.dim() == 2 else nearest
 
 
+def gather_rows(t: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+    """``t[index]`` along dim 0, with a deterministic backward. Many leaves share a proxy, so ``index`` repeats
+    rows: the backward of advanced indexing (``index_put_`` with accumulate) adds the repeats with parallel atomic
+    adds on CPU, in an order that changes from run to run (torch 2.13: fits diverged from the first stage-2
+    iteration); ``index_select``'s backward (``index_add_``) adds them in index order."""
+    return t.index_select(0, index)
+
+
 def offset_recon_loss(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     """The offsets' reconstruction term: squared error summed over a leaf's K x 3 offsets, mean over leaves."""
     return ((pred - target) ** 2).sum((1, 2)).mean()
@@ -219,9 +227,9 @@ def predictor_geometry(positions: torch.Tensor, features: torch.Tensor, near: to
     k = near[leaves]
     pl = positions[leaves]
     parts = [predictor_inputs(pl, positions[k[:, 0]], cfg.dist_ref, cfg.pe_dist_freqs, cfg.pe_dir_freqs)]
-    f0 = features[k[:, 0]] if cfg.context > 1 else None
+    f0 = gather_rows(features, k[:, 0]) if cfg.context > 1 else None
     for j in range(1, cfg.context):
-        parts.append(features[k[:, j]] - f0)
+        parts.append(gather_rows(features, k[:, j]) - f0)
         parts.append(predictor_inputs(pl, positions[k[:, j]], cfg.dist_ref, cfg.pe_dist_freqs, cfg.pe_dir_freqs))
     return torch.cat(parts, -1) if len(parts) > 1 else parts[0]
 
@@ -265,7 +273,8 @@ class ResidualPredictor(nn.Module):
         cfg = self.config
         geo = predictor_geometry(positions, features, nearest, leaves, cfg)
         k = nearest_column(nearest)[leaves]
-        return self(features[k], geo, offsets[k] if (offsets is not None and cfg.predict_offsets) else None)
+        return self(gather_rows(features, k), geo,
+                    gather_rows(offsets, k) if (offsets is not None and cfg.predict_offsets) else None)
 
     # ------------------------------------------------------------------ persistence (raw arrays, no pickle)
     def state_arrays(self) -> dict[str, np.ndarray]:
@@ -401,7 +410,7 @@ class ProxyLeafMLP(nn.Module):
     def predict(self, positions: torch.Tensor, features: torch.Tensor, nearest: torch.Tensor,
                 leaves: torch.Tensor, offsets: torch.Tensor | None = None):
         k = nearest_column(nearest)[leaves]
-        return self(features[k], self.geometry(positions[leaves], positions[k]))
+        return self(gather_rows(features, k), self.geometry(positions[leaves], positions[k]))
 
     def state_arrays(self) -> dict[str, np.ndarray]:
         return state_arrays(self)
