@@ -267,6 +267,33 @@ def test_pareto_front_on_a_hand_made_set():
     assert pareto_front([{"t": 3.0, "psnr_avg": 1.0}, {"t": 1.0, "psnr_avg": 2.0}], x="t") == [1]
 
 
+def test_ablations_compare_with_the_row_the_paper_compares_with():
+    """The paper's lambda_recon deltas are against its schedule, not against our default (lambda_recon = 0): those
+    rows take their delta, sign and noise verdict from the schedule row; the others from our reference."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("tradeoff", Path(__file__).parents[1] / "benchmarks" / "tradeoff.py")
+    tradeoff = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(tradeoff)
+    names = {a[0] for a in tradeoff.ABLATIONS}
+    assert set(tradeoff.PAPER_BASIS) <= names and set(tradeoff.PAPER_BASIS.values()) <= names
+    sched = {"name": tradeoff._SCHEDULE, "psnr_avg": 28.3, "delta": -0.3}
+    fixed = {"name": "lambda_recon fixed 0.01", "psnr_avg": 28.35, "delta": -0.25, "paper_delta": 0.006}
+    tradeoff._compare_like_the_paper(fixed, sched)
+    assert fixed["delta_paper_basis"] == pytest.approx(0.05) and fixed["same_direction_as_paper"] is True
+    assert fixed["paper_basis"] == tradeoff._SCHEDULE and fixed["delta"] == -0.25  # vs our reference: kept
+    gate = {"name": "gate kappa 5", "psnr_avg": 28.8, "delta": 0.1, "paper_delta": -0.054}
+    tradeoff._compare_like_the_paper(gate, None)
+    assert gate["delta_paper_basis"] == 0.1 and gate["same_direction_as_paper"] is False
+    none = {"name": "x", "psnr_avg": None, "delta": None, "paper_delta": -1.0}
+    tradeoff._compare_like_the_paper(none, sched)
+    assert none["delta_paper_basis"] is None and none["same_direction_as_paper"] is None
+    md = "\n".join(tradeoff.ablation_markdown([{**fixed, "scene": "lego", "width": 200, "iters_planned": 3000,
+                                                 "psnr_10": 1.0, "psnr_100": 2.0, "ssim_avg": 0.9,
+                                                 "iterations": 3000, "within_noise": True}], {}))
+    assert "| -0.250 |" in md and "| +0.050 | yes (within noise) |" in md
+
+
 def test_encode_sweep_plan_centres_on_the_defaults():
     from proxycodec.bench import _knob_id, encode_sweep_plan
     from proxycodec.codec import EncodeConfig
