@@ -113,17 +113,17 @@ def select_proxies(positions, cell_size: float, ratio: float = 0.3, seed: int = 
     key[canon] = np.random.default_rng(seed).random(M)
     counts = np.bincount(cell)
     quota = proxies_per_cell(counts, ratio)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])  # first position of each cell in cell order
     if method == "spread":
-        key = np.where(counts[cell] > SPREAD_MAX_CELL, key, _spread_keys(p, cell, counts, quota, canon))
+        key = np.where(counts[cell] > SPREAD_MAX_CELL, key, _spread_keys(p, cell, counts, starts, quota, canon))
     order = np.lexsort((key, cell))  # by cell, smallest keys first
-    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
     rank = np.arange(M) - starts[cell[order]]
     mask = np.zeros(M, dtype=bool)
     mask[order] = rank < quota[cell[order]]
     return mask
 
 
-def _spread_keys(p: np.ndarray, cell: np.ndarray, counts: np.ndarray, quota: np.ndarray,
+def _spread_keys(p: np.ndarray, cell: np.ndarray, counts: np.ndarray, starts: np.ndarray, quota: np.ndarray,
                  canon: np.ndarray) -> np.ndarray:
     """[M] keys in [0, 1): the greedy k-median's picks of every cell (up to ``SPREAD_MAX_CELL`` anchors) get keys
     below 0.5 in pick order, the rest 0.5 and up. Cells of the same size are processed together: [C, n, n] distances,
@@ -132,7 +132,6 @@ def _spread_keys(p: np.ndarray, cell: np.ndarray, counts: np.ndarray, quota: np.
     depend on the input order."""
     keys = np.full(len(p), 0.75)
     order = canon[np.argsort(cell[canon], kind="stable")]  # by cell, canonical position order within
-    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
     for n in np.unique(counts):
         if n > SPREAD_MAX_CELL:
             continue
