@@ -185,15 +185,17 @@ class TestProxyLeafMLP:
 
 
 # ------------------------------------------------------------------------------------------------ gate
-class TestGateSwitches:
-    @pytest.fixture(scope="class")
-    def gated(self, tiny, tmp_path_factory):
-        out = tmp_path_factory.mktemp("gated") / "g.ply"
-        r = CliRunner().invoke(_cli(), ["fit", str(tiny[0]), "-o", str(out), "--iters", "8", "--init-points", "200",
-                                        "--gate-kappa", "6", "--gate-eta", "0.5", "--no-proxies"])
-        assert r.exit_code == 0, r.output
-        return out
+@pytest.fixture(scope="class")
+def gated(tiny, tmp_path_factory):
+    """A gated fit with non-default kappa / eta (one per class that asks for it)."""
+    out = tmp_path_factory.mktemp("gated") / "g.ply"
+    r = CliRunner().invoke(_cli(), ["fit", str(tiny[0]), "-o", str(out), "--iters", "8", "--init-points", "200",
+                                    "--gate-kappa", "6", "--gate-eta", "0.5", "--no-proxies"])
+    assert r.exit_code == 0, r.output
+    return out
 
+
+class TestGateSwitches:
     def test_kappa_eta_are_stored_and_rendered_with(self, gated, tmp_path):
         from proxycodec import codec
         from proxycodec.model import SceneModel, render_scene
