@@ -33,7 +33,7 @@ from .formats.container import (
 from .model import SceneModel, SceneRender, weights_path_for
 from .proxy import (
     PredictorConfig, ResidualPredictor, TrainConfig, TrainResult, default_cell_size, nearest_proxies,
-    select_proxies, torch_threads, train_predictor,
+    load_fitted_predictor, select_proxies, torch_threads, train_predictor,
 )
 from .scene import AnchorScene
 # The decoder's reading of the sections is torch-free and shared with proxycodec.lite.
@@ -229,16 +229,10 @@ def _source_model(source) -> tuple[SceneModel, int | None, str, tuple]:
     if ply.is_file() and ply.read_bytes()[:8] == MAGIC:
         raise ProxycodecError("is already a proxycodec container; encode takes an anchor PLY", ply)
     model = SceneModel.load(ply, w)
-    fitted = (None, None)
     try:
-        from .train import load_predictor
-    except ImportError:  # pragma: no cover - the trainer is optional
-        load_predictor = None
-    if load_predictor is not None:
-        try:
-            fitted = load_predictor(w)
-        except (KeyError, TypeError, ValueError) as e:
-            raise ProxycodecError(f"bad stage-2 predictor in the weights file ({e})", w) from None
+        fitted = load_fitted_predictor(w)
+    except (KeyError, TypeError, ValueError) as e:
+        raise ProxycodecError(f"bad stage-2 predictor in the weights file ({e})", w) from None
     return model, ply.stat().st_size + w.stat().st_size, str(ply), fitted
 
 

@@ -37,7 +37,6 @@ from __future__ import annotations
 import math
 import os
 import time
-from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -46,20 +45,13 @@ import torch
 
 from .errors import ProxycodecError
 from .formats.inria_ply import GaussianPly, read_inria_ply, rgb_to_sh_dc, write_inria_ply
-from .metrics import dssim, mse_to_psnr
+from .loop import (
+    ProgressFn, TargetImages, TrainingRun, check_run_length, fmt_time, initial_points, knn_scale, ndc_grad_norm,
+    photometric_loss, run_until_done,
+)
+from .optim import Adam, exp_lr
 from .render import GateConfig, RenderResult, render_gaussians
 from .render.project import quat_to_rotmat
-from .train import (
-    RunSchedule,
-    _Adam,
-    _exp_lr,
-    _fmt_time,
-    _knn_scale,
-    _TargetImages,
-    check_run_length,
-    initial_points,
-    timed_step,
-)
 
 __all__ = [
     "NO_GATE",
@@ -273,16 +265,13 @@ def initial_gaussians(data, cfg: ExplicitConfig, rng: np.random.Generator) -> di
         "sh_dc": f(dc),
         "sh_rest": torch.zeros(n, n_coef - 1, 3),
         "opacities": torch.full((n,), logit),
-        "scales": f(np.repeat(np.log(_knn_scale(pts))[:, None], 3, 1)),
+        "scales": f(np.repeat(np.log(knn_scale(pts))[:, None], 3, 1)),
         "quats": f(quats),
     }
 
 
 # ================================================================================================ the trainer
-ProgressFn = Callable[[str], None]
-
-
-class ExplicitTrainer(RunSchedule):
+class ExplicitTrainer(TrainingRun):
     """Owns the Gaussians, the optimiser and the densification statistics of one plain 3DGS run."""
 
     def __init__(self, data, config: ExplicitConfig, log: ProgressFn | None = None):
@@ -294,9 +283,9 @@ class ExplicitTrainer(RunSchedule):
         self.bg = torch.tensor(data.background, dtype=torch.float32)
         self.rng = np.random.default_rng(config.seed)
         torch.manual_seed(config.seed)
-        self.images = _TargetImages(data, config.image_cache_mb << 20)
+        self.images = TargetImages(data, config.image_cache_mb << 20)
         self.extent = cameras_extent([data.cameras[i] for i in data.train_indices])
-        self.opt = _Adam()
+        self.opt = Adam()
         self.params: dict[str, torch.Tensor] = {}
         for k, v in initial_gaussians(data, config, self.rng).items():
             self.params[k] = v.requires_grad_(True)
@@ -326,7 +315,7 @@ class ExplicitTrainer(RunSchedule):
 
     def learning_rates(self, p: float) -> dict[str, float]:
         c = self.cfg
-        return {"means": _exp_lr(c.lr_position[0] * self.extent, c.lr_position[1] * self.extent, p),
+        return {"means": exp_lr(c.lr_position[0] * self.extent, c.lr_position[1] * self.extent, p),
                 "sh_dc": c.lr_sh_dc, "sh_rest": c.lr_sh_rest, "opacities": c.lr_opacity, "scales": c.lr_scaling,
                 "quats": c.lr_rotation}
 
@@ -341,30 +330,22 @@ class ExplicitTrainer(RunSchedule):
                                 colors, camera, background=self.bg, gate=NO_GATE, backend=self.cfg.backend)
 
     def train_step(self) -> dict:
+        """sample view and resolution -> render -> loss -> backward -> step -> densify (``TrainingRun.optimise``)."""
         c = self.cfg
         p = self.progress()
-        i = self._next_view()
-        xi = float(c.xi_min + (1.0 - c.xi_min) * self.rng.random()) if c.random_res else 1.0
+        i, xi, gt = self.sample_view((c.xi_min, 1.0) if c.random_res else None)
         cam = self.data.cameras[i].scaled(xi)
-        gt = self.images.get(i, xi)
         r = self.render(cam, self.active_sh_degree(p))
-        img = r.image
-        loss = (1 - c.lambda_dssim) * (img - gt).abs().mean() + c.lambda_dssim * dssim(img, gt)
-        means2d = r.projected.means2d
-        if means2d.requires_grad:
-            means2d.retain_grad()
-        self.opt.zero_grad()
-        if loss.requires_grad:
-            loss.backward()
-        if p < c.densify_until:
-            self._update_stats(r.projected, cam.width, cam.height)
-        self.opt.step(self.learning_rates(p))
-        with torch.no_grad():
-            mse = float(((img.detach().clamp(0, 1) - gt) ** 2).mean())
-        self.iteration += 1
+        loss = photometric_loss(r.image, gt, c.lambda_dssim)
+        self.optimise(loss, r, cam.width, cam.height, self.learning_rates(p))
+        return {**self.step_stats(loss, r.image, gt), "xi": xi, "view": i, "drawn": int(r.projected.count)}
+
+    def observe(self, r, width: int, height: int) -> None:
+        if self.progress() < self.cfg.densify_until:
+            self._update_stats(r.projected, width, height)
+
+    def after_step(self) -> None:
         self._maybe_densify()
-        return {"loss": float(loss.detach()), "psnr": mse_to_psnr(max(mse, 1e-10)), "xi": xi, "view": i,
-                "drawn": int(r.projected.count)}
 
     @torch.no_grad()
     def _update_stats(self, proj, width: int, height: int) -> None:
@@ -372,7 +353,7 @@ class ExplicitTrainer(RunSchedule):
         g = proj.means2d.grad
         if g is None or proj.count == 0:
             return
-        gn = (g.double() * torch.tensor([0.5 * width, 0.5 * height], dtype=torch.float64)).norm(dim=1)
+        gn = ndc_grad_norm(g, width, height)
         self.grad_accum.index_add_(0, proj.index, gn)
         self.denom.index_add_(0, proj.index, torch.ones_like(gn))
 
@@ -445,17 +426,12 @@ def run_explicit(data, cfg: ExplicitConfig = ExplicitConfig(), log: ProgressFn |
     log(f"fit --explicit (plain 3DGS): {len(data.train_indices)} training views, {tr.num_gaussians} initial "
         f"Gaussians, extent {tr.extent:.3g}, SH degree {cfg.sh_degree}, setup {time.perf_counter() - t_setup:.1f} s; "
         f"iters {cfg.iters}, time budget {cfg.time_budget}")
-    last_log = time.perf_counter()
-    while not tr.done():
-        _, logged = timed_step(tr, cfg.log_every, last_log, log,
-                               lambda st: f"gauss {tr.num_gaussians:7d}  drawn {st['drawn']:7d}",
-                               lambda: {"gaussians": tr.num_gaussians})
-        if logged:
-            last_log = time.perf_counter()
+    run_until_done(tr, log, lambda st: f"gauss {tr.num_gaussians:7d}  drawn {st['drawn']:7d}",
+                   lambda: {"gaussians": tr.num_gaussians})
     ply = tr.result()
     if out is not None:
         write_inria_ply(out, ply)
-    log(f"done: {tr.iteration} iterations in {_fmt_time(tr.elapsed)}, {ply.n_gaussians} Gaussians"
+    log(f"done: {tr.iteration} iterations in {fmt_time(tr.elapsed)}, {ply.n_gaussians} Gaussians"
         + (f" -> {out}" if out is not None else ""))
     return tr
 

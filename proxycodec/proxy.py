@@ -32,14 +32,16 @@ from torch import nn
 from .decoder import positional_encoding
 from . import nearest as _nearest
 from .errors import ProxycodecError
+from .formats.container import read_container
 from .netconfig import PredictorConfig
+from .optim import Adam
 from .weights import load_state_arrays, state_arrays
 
 __all__ = [
     "default_cell_size", "select_proxies", "nearest_proxy", "nearest_proxies", "nearest_column", "PredictorConfig",
     "ResidualPredictor", "predictor_inputs", "predictor_geometry", "recon_loss", "offset_recon_loss", "TrainConfig",
     "TrainResult", "train_predictor", "proxies_per_cell", "PROXY_SELECTIONS", "check_proxy_selection", "RECON_LOSSES",
-    "PREDICTOR_KINDS", "ProxyLeafConfig", "ProxyLeafMLP", "predictor_from_json",
+    "PREDICTOR_KINDS", "ProxyLeafConfig", "ProxyLeafMLP", "predictor_from_json", "load_fitted_predictor",
 ]
 
 
@@ -472,33 +474,6 @@ def torch_threads(n: int):
         torch.set_num_threads(old)
 
 
-class _Adam:
-    """Plain Adam (Kingma & Ba, bias-corrected; torch.optim.Adam's defaults). Hand-written because importing
-    torch.optim pulls in torch._dynamo, which costs seconds in every fresh process that encodes."""
-
-    def __init__(self, params, betas=(0.9, 0.999), eps=1e-8):
-        self.params = [p for p in params if p.requires_grad]
-        self.m = [torch.zeros_like(p) for p in self.params]
-        self.v = [torch.zeros_like(p) for p in self.params]
-        self.b1, self.b2, self.eps, self.t = betas[0], betas[1], eps, 0
-
-    def zero_grad(self) -> None:
-        for p in self.params:
-            p.grad = None
-
-    @torch.no_grad()
-    def step(self, lr: float) -> None:
-        self.t += 1
-        c1, c2 = 1 - self.b1 ** self.t, 1 - self.b2 ** self.t
-        for p, m, v in zip(self.params, self.m, self.v):
-            if p.grad is None:
-                continue
-            g = p.grad
-            m.mul_(self.b1).add_(g, alpha=1 - self.b1)
-            v.mul_(self.b2).addcmul_(g, g, value=1 - self.b2)
-            p.addcdiv_(m, (v / c2).sqrt_().add_(self.eps), value=-lr / c1)
-
-
 ProgressFn = Callable[[int, int, float, float], None]  # (iteration, total, loss, seconds elapsed)
 
 
@@ -560,7 +535,7 @@ def _train(predictor, loss_of, L, config, progress, progress_every, t0) -> Train
         return TrainResult(baseline, baseline, 0, time.perf_counter() - t0, history)
     gen = torch.Generator().manual_seed(int(config.seed))
     torch.manual_seed(int(config.seed))
-    opt = _Adam(predictor.parameters())
+    opt = Adam(((k, p) for k, p in predictor.named_parameters() if p.requires_grad), eps=1e-8)
     n = max(1, int(math.ceil(config.sample_frac * L)))
     predictor.train()
     for it in range(1, config.iters + 1):
@@ -579,3 +554,21 @@ def _train(predictor, loss_of, L, config, progress, progress_every, t0) -> Train
     with torch.no_grad():
         final = float(loss_of())
     return TrainResult(baseline, final, config.iters, time.perf_counter() - t0, history)
+
+
+def load_fitted_predictor(weights_path) -> tuple[ResidualPredictor | None, np.ndarray | None]:
+    """(predictor, proxy mask) stored by ``fit`` stage 2 in a weights sidecar, or (None, None) when it has none.
+
+    Also (None, None) for the Proxy&Leaf MLP ablation (``fit --predictor proxy-leaf-mlp``): the container stores
+    residual predictors only, so ``encode`` selects proxies and fits a residual predictor of its own for such a scene
+    (its PLY already holds the leaves' predicted features, which is what ``eval`` measures)."""
+    c = read_container(weights_path)
+    fit_meta = c.meta.get("fit", {})
+    if "predictor" not in fit_meta:
+        return None, None
+    if isinstance(fit_meta["predictor"], dict) and fit_meta["predictor"].get("kind", "residual") != "residual":
+        return None, None
+    cfg = PredictorConfig.from_json(fit_meta["predictor"])
+    pred = ResidualPredictor.from_arrays(cfg, {k[len("predictor/"):]: v for k, v in c.arrays.items()
+                                               if k.startswith("predictor/")})
+    return pred.eval(), np.asarray(c.arrays["proxy_mask"], dtype=bool)

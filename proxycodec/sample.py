@@ -141,7 +141,11 @@ def sample_scene(seed: int = 0, voxel: float = VOXEL) -> AnchorScene:
 def sample_decoder(scene: AnchorScene) -> GaussianDecoder:
     meta = scene.metadata
     cfg = DecoderConfig(scene_center=tuple(meta.get("center", (0, 0, 0))), scene_radius=float(meta.get("radius", 1.0)))
-    dec = GaussianDecoder(cfg)
+    # The layers not set below (the FiLM MLP's first layer) keep torch's random init: draw it from the scene's seed,
+    # so the same seed gives the same bytes (the FiLM output layer is zero, so it does not change any render).
+    with torch.random.fork_rng():
+        torch.manual_seed(int(meta.get("seed", 0)))
+        dec = GaussianDecoder(cfg)
     F = cfg.feat_dim
     with torch.no_grad():
         for mlp in (dec.mlp_opacity, dec.mlp_cov, dec.mlp_color):

@@ -1,17 +1,17 @@
-"""Training an anchor scene from posed images: ``proxycodec fit`` (issue #4).
+"""Training an anchor scene from posed images: ``proxycodec fit``.
 
 Stage 1 is Scaffold-GS training made resolution-aware: every iteration draws xi ~ U[xi_min, xi_max], renders the
 scene at ``camera.scaled(xi)`` with the FiLM resolution embedding and the pixel coverage gate on (the gate is part of
 the projection, so it is trained jointly through autograd), and compares with the dataset's anti-aliased image at
 that size; loss (1 - 0.2) L1 + 0.2 D-SSIM + 0.01 * mean volume of the neural Gaussians. Anchors grow where the mean
-view-space gradient of their neural Gaussians is high and are pruned where their opacity stays low (Scaffold-GS's
-``adjust_anchor``). Stage 2 freezes the anchor set, picks proxy anchors (density-aware, rho = 0.3) and trains the
-residual predictor jointly: leaves are rendered with PREDICTED features and L_recon (MSE + 0.1 (1 - cos), 20% of
-leaves per iteration, against the leaves' stage-1 features) is added with lambda 0.1, then 0.01 from 2/3 of training.
+view-space gradient of their neural Gaussians is high and are pruned where their opacity stays low
+(``strategy.ScaffoldStrategy``). Stage 2 freezes the anchor set, picks proxy anchors (density-aware, rho = 0.3) and
+trains the residual predictor jointly: leaves are rendered with PREDICTED features.
 
-Schedules are fractions of the run (``FitConfig`` documents each), so the same config serves ``iters`` and a wall
-time budget. Everything random draws from one numpy generator whose state is checkpointed: with ``iters`` (and no
-time budget) a run is deterministic for a seed, and a resumed run continues exactly where the checkpoint was taken.
+The iteration itself is the shared loop of ``loop.TrainingRun``; schedules are fractions of the run (``FitConfig``
+documents each), so the same config serves ``iters`` and a wall time budget. Everything random draws from one numpy
+generator whose state is checkpointed: with ``iters`` (and no time budget) a run is deterministic for a seed, and a
+resumed run continues exactly where the checkpoint was taken.
 
 Checkpoints and outputs are our own containers (raw arrays + JSON), written atomically; nothing is pickled.
 """
@@ -25,7 +25,6 @@ import shutil
 import sys
 import tempfile
 import time
-from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any
@@ -36,11 +35,21 @@ import torch
 from .camera import Camera
 from .decoder import DecoderConfig, GaussianDecoder, visible_anchors
 from .errors import ProxycodecError
-from .metrics import dssim, mse_to_psnr
+from .formats.container import read_container, write_container
+from .loop import (
+    ProgressFn, TargetImages, TrainingRun, check_run_length, fmt_time, initial_points, knn_scale, photometric_loss,
+    run_until_done,
+)
 from .model import SceneModel, render_scene, weights_path_for
 from .netconfig import PredictorConfig
+from .optim import Adam, exp_lr
+from .proxy import (
+    PREDICTOR_KINDS, RECON_LOSSES, ProxyLeafConfig, TrainConfig, check_proxy_selection, default_cell_size,
+    nearest_proxies, offset_recon_loss, predictor_from_json, recon_loss, select_proxies, train_predictor,
+)
 from .render.project import GateConfig
 from .scene import AnchorScene
+from .strategy import ScaffoldStrategy
 
 __all__ = [
     "CHECKPOINT_KIND",
@@ -60,18 +69,6 @@ FIT_KIND = "proxycodec.fit"
 
 
 # ================================================================================================ configuration
-def check_run_length(iters: int | None, time_budget: float | None, max_width: int | None) -> None:
-    """The options every trainer shares: a number of iterations and/or a time budget; a sane reference width."""
-    if iters is None and time_budget is None:
-        raise ProxycodecError("give a number of iterations, a time budget, or both")
-    if iters is not None and int(iters) < 1:
-        raise ProxycodecError(f"iterations must be >= 1, got {iters}")
-    if time_budget is not None and not (time_budget > 0):
-        raise ProxycodecError(f"time budget must be positive, got {time_budget}")
-    if max_width is not None and int(max_width) < 8:
-        raise ProxycodecError(f"max width must be >= 8 pixels, got {max_width}")
-
-
 @dataclass(frozen=True)
 class FitConfig:
     """Everything that determines a training run. Fractions are of the whole run (iterations or time budget)."""
@@ -100,11 +97,8 @@ class FitConfig:
     # loss
     lambda_dssim: float = 0.2
     lambda_volume: float = 0.01
-    # Added to the opacity head's bias at initialisation. Scaffold-GS starts it at PyTorch's default (about
-    # +-0.18), so about half the neural Gaussians start with opacity <= 0 (never drawn, no gradient) and, with
-    # zero-initialised features, the rest move together: on mic (random init, 85% background) every Gaussian
-    # was below zero after 20 iterations and the scene died. +0.5 starts them at opacity 0.3-0.6, like 3DGS's
-    # visible-at-start init; empty-space Gaussians then fade with gradient instead of vanishing without one.
+    # [D] added to the opacity head's bias at initialisation, so the neural Gaussians start visible (opacity
+    # 0.3-0.6, like 3DGS's init) and fade with a gradient instead of dying without one (SPEC.md section 5)
     opacity_bias_init: float = 0.5
     # learning rates (Scaffold-GS defaults; exponential decay init -> final over the run)
     lr_feature: float = 0.0075
@@ -118,7 +112,7 @@ class FitConfig:
     # anchor growing / pruning (Scaffold-GS adjust_anchor; its 500/1500/15000 of 30000 iterations as fractions)
     start_stat: float = 0.0167
     update_from: float = 0.05
-    update_until: float = 0.5
+    update_until: float | None = None  # None: stage2_start (the anchor set is final when stage 2 begins)
     update_interval: int = 100  # at most this many iterations between adjustments (Scaffold-GS: 100 of 30k)
     update_interval_frac: float = 1.0 / 150  # ... and about this fraction of the run, at least 10 iterations
     success_threshold: float = 0.8
@@ -129,13 +123,11 @@ class FitConfig:
     update_hierarchy_factor: int = 4
     max_anchors: int = 200_000  # growth stops beyond this (a memory/time guard for CPU runs)
     # stage 2
-    stage2_start: float = 0.5  # = update_until: the anchor set is final from here on
+    stage2_start: float = 0.5  # also ends anchor growing unless update_until is given
     recon_switch: float = 2.0 / 3.0  # the paper's 20k of 30k
     lambda_recon: tuple[float, float] = (0.1, 0.01)
     # lambda_recon in joint stage 2: this constant, or None for the paper's schedule above (supplement Table 10).
-    # [D] 0: on lego (200 px, 4000 iterations) any weight of the paper's size lets L_recon (pulling predicted leaf
-    # features to their frozen stage-1 values) outweigh the rendering loss in the predictor's Adam updates: the
-    # schedule scored 28.705 dB, fixed 0.01 28.66, 0 29.084 (no proxies: 29.375). The warm-up still uses L_recon.
+    # [D] 0 by default (why: SPEC.md section 5); the predictor warm-up still uses L_recon.
     lambda_recon_fixed: float | None = 0.0
     recon_loss: str = "mse+cos"  # ablation (supplement Table 6): "mse+cos" | "mse" | "l1"
     predictor: str = "residual"  # ablation (supplement Table 5): "residual" | "proxy-leaf-mlp" (fit/eval only)
@@ -162,6 +154,8 @@ class FitConfig:
 
     def __post_init__(self) -> None:
         check_run_length(self.iters, self.time_budget, self.max_width)
+        if self.update_until is None:
+            object.__setattr__(self, "update_until", self.stage2_start)
         if not (0.025 <= self.xi_min <= self.xi_max <= 2.0):
             raise ProxycodecError(f"resolution range [{self.xi_min}, {self.xi_max}] must lie in [0.025, 2]")
         DecoderConfig(embedding=self.embedding)  # validates the name
@@ -171,8 +165,6 @@ class FitConfig:
                         context=self.predictor_context)  # validates width, depth and context
         if self.predictor_warmup < 0:
             raise ProxycodecError(f"predictor warm-up must be >= 0 iterations, got {self.predictor_warmup}")
-        from .proxy import PREDICTOR_KINDS, RECON_LOSSES, check_proxy_selection
-
         if self.recon_loss not in RECON_LOSSES:
             raise ProxycodecError(f"unknown reconstruction loss {self.recon_loss!r}; choose from "
                                   f"{', '.join(RECON_LOSSES)}")
@@ -206,13 +198,6 @@ class FitConfig:
                              film_xi_range=(1.0, 1.0) if self.fixed_res else (self.xi_min, self.xi_max),
                              gate=GateConfig(self.gate, self.gate_kappa, self.gate_eta))
 
-
-def _exp_lr(init: float, final: float, t: float) -> float:
-    """Scaffold-GS's get_expon_lr_func without delay: log-linear from init to final as t goes 0 -> 1."""
-    t = min(max(t, 0.0), 1.0)
-    if init <= 0 or final <= 0:
-        return init * (1 - t) + final * t
-    return math.exp(math.log(init) * (1 - t) + math.log(final) * t)
 
 
 # ================================================================================================ trainable anchors
@@ -264,118 +249,17 @@ class TrainableAnchors:
             setattr(self, name, torch.cat([old, new.float()]).requires_grad_(True))
 
 
-# ================================================================================================ optimiser
-class _Adam:
-    """Adam over named tensors (3DGS's eps = 1e-15) whose rows can be appended or dropped between steps.
-
-    torch.optim.Adam would need "optimizer surgery" for anchor growing and pickling for checkpoints; this keeps
-    the moments as plain tensors that follow the anchor rows and serialise as raw arrays.
-    """
-
-    def __init__(self, betas=(0.9, 0.999), eps=1e-15):
-        self.b1, self.b2 = betas
-        self.eps = eps
-        self.params: dict[str, torch.Tensor] = {}
-        self.m: dict[str, torch.Tensor] = {}
-        self.v: dict[str, torch.Tensor] = {}
-        self.step_count: dict[str, int] = {}
-
-    def add(self, name: str, p: torch.Tensor) -> None:
-        self.params[name] = p
-        self.m.setdefault(name, torch.zeros_like(p.detach()))
-        self.v.setdefault(name, torch.zeros_like(p.detach()))
-        self.step_count.setdefault(name, 0)
-
-    def rebind(self, name: str, p: torch.Tensor, keep: torch.Tensor | None = None, append: int = 0) -> None:
-        """The tensor ``name`` was replaced: rows ``keep`` survive (in order), then ``append`` zero rows follow."""
-        m, v = self.m[name], self.v[name]
-        if keep is not None:
-            m, v = m[keep], v[keep]
-        if append:
-            z = torch.zeros((append,) + tuple(m.shape[1:]), dtype=m.dtype)
-            m, v = torch.cat([m, z]), torch.cat([v, z])
-        self.m[name], self.v[name] = m.contiguous(), v.contiguous()
-        self.params[name] = p
-
-    @torch.no_grad()
-    def step(self, lrs: dict[str, float]) -> None:
-        for name, p in self.params.items():
-            g = p.grad
-            lr = lrs.get(name, 0.0)
-            if g is None or lr == 0.0:
-                continue
-            self.step_count[name] += 1
-            t = self.step_count[name]
-            m, v = self.m[name], self.v[name]
-            m.mul_(self.b1).add_(g, alpha=1 - self.b1)
-            v.mul_(self.b2).addcmul_(g, g, value=1 - self.b2)
-            denom = (v / (1 - self.b2**t)).sqrt_().add_(self.eps)
-            p.addcdiv_(m, denom, value=-lr / (1 - self.b1**t))
-
-    def zero_grad(self) -> None:
-        for p in self.params.values():
-            p.grad = None
-
-    def state_arrays(self) -> dict[str, np.ndarray]:
-        out = {}
-        for name in self.params:
-            out[f"adam_m/{name}"] = self.m[name].numpy().copy()
-            out[f"adam_v/{name}"] = self.v[name].numpy().copy()
-        return out
-
-    def load_arrays(self, arrays: dict[str, np.ndarray], steps: dict[str, int]) -> None:
-        for name, p in self.params.items():
-            for kind, store in (("adam_m", self.m), ("adam_v", self.v)):
-                a = arrays.get(f"{kind}/{name}")
-                if a is None or tuple(a.shape) != tuple(p.shape):
-                    raise ProxycodecError(f"checkpoint optimiser state {kind}/{name} is missing or has a wrong shape")
-                store[name] = torch.from_numpy(np.array(a, dtype=np.float32))
-            self.step_count[name] = int(steps.get(name, 0))
-
-
-# ================================================================================================ initialisation
-def _voxelise(points: np.ndarray, voxel: float) -> np.ndarray:
+def voxelise(points: np.ndarray, voxel: float) -> np.ndarray:
     """Scaffold-GS: unique(round(p / v)) * v."""
     cells = np.unique(np.round(points / voxel).astype(np.int64), axis=0)
     return cells.astype(np.float64) * voxel
-
-
-def _knn_scale(points: np.ndarray) -> np.ndarray:
-    """[N] sqrt of the mean squared distance to the 3 nearest neighbours (3DGS's distCUDA2), floored."""
-    from scipy.spatial import cKDTree
-
-    n = len(points)
-    if n < 2:
-        return np.full(n, 0.01)
-    k = min(4, n)
-    d, _ = cKDTree(points).query(points, k=k)
-    d2 = (d[:, 1:] ** 2).mean(1)
-    return np.sqrt(np.maximum(d2, 1e-7))
-
-
-def initial_points(data, n_random: int, rng: np.random.Generator, what: str
-                   ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, float]:
-    """-> (points [N, 3] float64, their SfM colours [N, 3] 0..255 or None, bounds [2, 3], extent): the dataset's SfM
-    points within half an extent of its bounds, or (Blender, no SfM points) ``n_random`` uniform points in the
-    bounds, 3DGS/Scaffold-GS's random init for NeRF-Synthetic. Shared by the anchor and the explicit trainers."""
-    bounds = np.asarray(data.bounds, dtype=np.float64)
-    extent = float((bounds[1] - bounds[0]).max())
-    if extent <= 0 or not math.isfinite(extent):
-        raise ProxycodecError(f"dataset bounds are empty; cannot place initial {what}")
-    pts = data.points
-    if pts is not None and len(pts) >= 8:
-        pts = np.asarray(pts, dtype=np.float64)
-        inside = ((pts >= bounds[0] - 0.5 * extent) & (pts <= bounds[1] + 0.5 * extent)).all(1)
-        colors = None if data.point_colors is None else np.asarray(data.point_colors, dtype=np.float64)[inside]
-        return pts[inside], colors, bounds, extent
-    return bounds[0] + rng.random((n_random, 3)) * (bounds[1] - bounds[0]), None, bounds, extent
 
 
 def initial_anchors(data, cfg: FitConfig, rng: np.random.Generator) -> tuple[np.ndarray, float, np.ndarray, float]:
     """-> (anchor positions [M, 3], voxel size, scene centre [3], scene radius) from the dataset."""
     pts, _, bounds, extent = initial_points(data, cfg.init_points, rng, "anchors")
     voxel = cfg.voxel_size if cfg.voxel_size > 0 else extent / cfg.voxel_divisions
-    anchors = _voxelise(pts, voxel)
+    anchors = voxelise(pts, voxel)
     if len(anchors) > cfg.max_init_anchors:
         anchors = anchors[np.sort(rng.choice(len(anchors), cfg.max_init_anchors, replace=False))]
     if len(anchors) == 0:
@@ -384,46 +268,6 @@ def initial_anchors(data, cfg: FitConfig, rng: np.random.Generator) -> tuple[np.
     radius = max(0.5 * float(np.linalg.norm(bounds[1] - bounds[0])), 1e-6)
     return anchors, float(voxel), center, radius
 
-
-# ================================================================================================ targets
-class _TargetImages:
-    """Training targets at any xi: the dataset's 100% image (kept in a byte-bounded float16 LRU cache) area-resized
-    with the dataset's own filter (``formats.images.resize_image``: PIL BOX, the exact area average).
-
-    ``PosedImages.load_image(i, xi)`` decodes the file on every new size; with a random xi per iteration that is
-    ~0.1 s per iteration on lego, the cost of a whole rendering step at low resolution. The 100% image is the
-    dataset's anti-aliased reference, so a target is the area average of the reference (within float16 rounding,
-    < 5e-4) rather than of the file's pixels directly; evaluation always uses ``load_image``.
-    """
-
-    def __init__(self, data, max_bytes: int):
-        from collections import OrderedDict
-
-        self.data = data
-        self.max_bytes = int(max_bytes)
-        self.items: OrderedDict[int, np.ndarray] = OrderedDict()
-        self.nbytes = 0
-
-    def reference(self, i: int) -> np.ndarray:
-        a = self.items.get(i)
-        if a is not None:
-            self.items.move_to_end(i)
-            return a
-        a = self.data.load_image(i, 1.0).numpy().astype(np.float16)
-        if a.nbytes <= self.max_bytes:
-            self.items[i] = a
-            self.nbytes += a.nbytes
-            while self.nbytes > self.max_bytes:
-                _, old = self.items.popitem(last=False)
-                self.nbytes -= old.nbytes
-        return a
-
-    def get(self, i: int, xi: float) -> torch.Tensor:
-        from .formats.images import resize_image
-
-        ref = self.reference(i)
-        w, h = self.data.image_size(i, xi)
-        return torch.from_numpy(resize_image(ref.astype(np.float32), w, h))
 
 
 # ================================================================================================ the trainer
@@ -442,52 +286,8 @@ def checkpoint_path_for(out_ply: str | os.PathLike) -> Path:
     return p.with_name(p.stem + ".ckpt.pxc")
 
 
-ProgressFn = Callable[[str], None]
-
-
-class RunSchedule:
-    """Where a run stands: ``cfg.iters`` and/or ``cfg.time_budget`` against ``iteration`` and ``elapsed`` (shared by
-    the anchor and the explicit trainers)."""
-
-    def _start_run(self) -> None:
-        """The run state both trainers keep (and checkpoint, where they do)."""
-        self.iteration = 0
-        self.elapsed = 0.0
-        self.view_stack: list[int] = []
-        self.history: list[dict] = []
-        self.ema_loss: float | None = None
-        self.ema_psnr: float | None = None
-
-    def _next_view(self) -> int:
-        """Training views in random order, each once per epoch (``self.rng``)."""
-        if not self.view_stack:
-            self.view_stack = [int(i) for i in self.rng.permutation(self.data.train_indices)]
-        return self.view_stack.pop()
-
-    def progress(self) -> float:
-        c = self.cfg
-        p = 0.0
-        if c.iters is not None:
-            p = self.iteration / c.iters
-        if c.time_budget is not None:
-            p = max(p, self.elapsed / c.time_budget)
-        return min(p, 1.0)
-
-    def done(self) -> bool:
-        return self.progress() >= 1.0
-
-    def expected_iterations(self) -> float:
-        """The run's length in iterations: ``iters``, or extrapolated from the pace so far under a time budget."""
-        c = self.cfg
-        if c.time_budget is None:
-            return float(c.iters)
-        p = self.progress()
-        est = self.iteration / p if p > 0.02 and self.iteration > 0 else float(c.iters or 1e9)
-        return min(est, float(c.iters)) if c.iters is not None else est
-
-
-class Trainer(RunSchedule):
-    """Owns the anchors, the decoder, the predictor, the optimiser and the running statistics of one fit."""
+class Trainer(TrainingRun):
+    """Owns the anchors, the decoder, the predictor, the optimiser and the growing strategy of one fit."""
 
     def __init__(self, data, config: FitConfig, dataset_root: str = "", log: ProgressFn | None = None):
         self.data = data
@@ -498,11 +298,11 @@ class Trainer(RunSchedule):
         if not data.train_indices:
             raise ProxycodecError("the dataset has no training images")
         self.rng = np.random.default_rng(config.seed)
-        self.images = _TargetImages(data, config.image_cache_mb << 20)
+        self.images = TargetImages(data, config.image_cache_mb << 20)
         torch.manual_seed(config.seed)
         anchors, voxel, center, radius = initial_anchors(data, config, self.rng)
         M, K, Fd = len(anchors), config.n_offsets, config.feat_dim
-        scale = np.log(_knn_scale(anchors))
+        scale = np.log(knn_scale(anchors))
         self.anchors = TrainableAnchors(
             torch.tensor(anchors, dtype=torch.float32), torch.zeros(M, Fd), torch.zeros(M, K, 3),
             torch.tensor(np.repeat(scale[:, None], 6, 1), dtype=torch.float32), voxel)
@@ -511,33 +311,25 @@ class Trainer(RunSchedule):
             self.decoder.mlp_opacity[-1].bias.add_(config.opacity_bias_init)
         self.predictor = None
         self.proxy_mask: torch.Tensor | None = None  # [M] bool
-        self.nearest: torch.Tensor | None = None  # [M] long
+        self.nearest: torch.Tensor | None = None  # [M, context] long
         self.leaf_target: torch.Tensor | None = None  # [L, F] stage-1 features of the leaves
         self.leaf_offset_target: torch.Tensor | None = None  # [L, K, 3] their stage-1 offsets (predict_offsets)
         self.leaves: torch.Tensor | None = None  # [L] long
-        self.opt = _Adam()
-        for k, t in self.anchors.tensors().items():
-            self.opt.add(k, t)
-        for k, p in self.decoder.named_parameters():
-            self.opt.add(f"decoder.{k}", p)
-        self._reset_stats()
+        self.opt = self._optimiser()
+        self.strategy = ScaffoldStrategy(config, M, K, self.log)
         self._start_run()
-        self.last_adjust = 0
         self.stage = 1
 
-    # ------------------------------------------------------------------ running statistics (Scaffold-GS)
-    def _reset_stats(self) -> None:
-        M, K = self.anchors.num_anchors, self.anchors.n_offsets
-        self.opacity_accum = torch.zeros(M, dtype=torch.float64)
-        self.anchor_denom = torch.zeros(M, dtype=torch.float64)
-        self.offset_grad_accum = torch.zeros(M * K, dtype=torch.float64)
-        self.offset_denom = torch.zeros(M * K, dtype=torch.float64)
+    def _optimiser(self) -> Adam:
+        opt = Adam(self.anchors.tensors())
+        for k, p in self.decoder.named_parameters():
+            opt.add(f"decoder.{k}", p)
+        return opt
 
     # ------------------------------------------------------------------ schedule
-
     def learning_rates(self, p: float) -> dict[str, float]:
         c = self.cfg
-        lrs: dict[str, float] = {"features": c.lr_feature, "offsets": _exp_lr(*c.lr_offset, p),
+        lrs: dict[str, float] = {"features": c.lr_feature, "offsets": exp_lr(*c.lr_offset, p),
                                  "scalings": c.lr_scaling}
         groups = {"mlp_opacity": c.lr_mlp_opacity, "mlp_cov": c.lr_mlp_cov, "mlp_color": c.lr_mlp_color,
                   "mlp_embed": c.lr_mlp_embed}
@@ -545,9 +337,9 @@ class Trainer(RunSchedule):
         for name in self.opt.params:
             if name.startswith("decoder."):
                 q = p2 if (c.decoder_lr_stage2 and self.stage >= 2) else p
-                lrs[name] = _exp_lr(*groups[name.split(".")[1]], q)
+                lrs[name] = exp_lr(*groups[name.split(".")[1]], q)
             elif name.startswith("predictor."):
-                lrs[name] = _exp_lr(*c.lr_predictor, p2 if c.predictor_lr_stage2 else p)
+                lrs[name] = exp_lr(*c.lr_predictor, p2 if c.predictor_lr_stage2 else p)
         return lrs
 
     def lambda_recon(self, p: float) -> float:
@@ -556,8 +348,30 @@ class Trainer(RunSchedule):
         return self.cfg.lambda_recon[0] if p < self.cfg.recon_switch else self.cfg.lambda_recon[1]
 
     # ------------------------------------------------------------------ one iteration
-    def _features_for(self, cam: Camera, with_recon: bool = True
-                      ) -> tuple[torch.Tensor | None, torch.Tensor | None, torch.Tensor]:
+    def train_step(self) -> dict:
+        """sample view and resolution -> the visible leaves' predicted features (stage 2) -> render -> loss ->
+        backward -> step -> growing and pruning (``loop.TrainingRun.optimise``)."""
+        c = self.cfg
+        p = self.progress()
+        if c.proxies and self.stage == 1 and p >= c.stage2_start:
+            self.enter_stage2()
+        i, xi, gt = self.sample_view(None if c.fixed_res else (c.xi_min, c.xi_max))
+        cam = self.data.cameras[i]
+        lam = self.lambda_recon(p) if self.stage >= 2 else 0.0
+        feats, offs, l_recon = self.leaf_tables(cam.scaled(xi), with_recon=lam != 0.0)
+        r = render_scene(self.anchors.scene(), self.decoder, cam, xi, background=self.bg, backend=c.backend,
+                         features=feats, offsets=offs)
+        loss = photometric_loss(r.image, gt, c.lambda_dssim)
+        if r.gaussians.count:
+            loss = loss + c.lambda_volume * r.gaussians.scales.prod(dim=1).mean()
+        if lam != 0.0:
+            loss = loss + lam * l_recon
+        self.optimise(loss, r, r.image.shape[1], r.image.shape[0], self.learning_rates(p))
+        return {**self.step_stats(loss, r.image, gt), "xi": xi, "view": i, "gaussians": int(r.projected.count),
+                "recon": float(l_recon.detach())}
+
+    def leaf_tables(self, cam: Camera, with_recon: bool = True
+                    ) -> tuple[torch.Tensor | None, torch.Tensor | None, torch.Tensor]:
         """Stage 2: the feature (and, with ``predict_offsets``, offset) tables with the visible leaves' rows
         predicted; and L_recon (0 without computing it when ``with_recon`` is False, i.e. its weight is 0: the
         leaf sample is still drawn, so the random stream does not depend on the weight)."""
@@ -582,8 +396,6 @@ class Trainer(RunSchedule):
         sel = torch.from_numpy(self.rng.choice(L, n, replace=False)).long()
         if not with_recon:
             return feats, offs, zero
-        from .proxy import offset_recon_loss, recon_loss
-
         pred_s, pred_so = self.predictor.predict(a.positions, a.features, self.nearest, self.leaves[sel],
                                                  a.offsets if po else None)
         loss = recon_loss(pred_s, self.leaf_target[sel], kind=self.cfg.recon_loss)
@@ -591,176 +403,16 @@ class Trainer(RunSchedule):
             loss = loss + offset_recon_loss(pred_so, self.leaf_offset_target[sel])
         return feats, offs, loss
 
-    def train_step(self) -> dict:
-        c = self.cfg
-        p = self.progress()
-        if c.proxies and self.stage == 1 and p >= c.stage2_start:
-            self.enter_stage2()
-        i = self._next_view()
-        xi = 1.0 if c.fixed_res else float(c.xi_min + (c.xi_max - c.xi_min) * self.rng.random())
-        cam = self.data.cameras[i]
-        gt = self.images.get(i, xi)  # [h, w, 3] anti-aliased to camera.scaled(xi)
-        lam = self.lambda_recon(p) if self.stage >= 2 else 0.0
-        feats, offs, l_recon = self._features_for(cam.scaled(xi), with_recon=lam != 0.0)
-        r = render_scene(self.anchors.scene(), self.decoder, cam, xi, background=self.bg, backend=c.backend,
-                         features=feats, offsets=offs)
-        img = r.image
-        l1 = (img - gt).abs().mean()
-        loss = (1 - c.lambda_dssim) * l1 + c.lambda_dssim * dssim(img, gt)
-        g = r.gaussians
-        if g.count:
-            loss = loss + c.lambda_volume * g.scales.prod(dim=1).mean()
-        if lam != 0.0:
-            loss = loss + lam * l_recon
-        means2d = r.projected.means2d
-        if means2d.requires_grad:
-            means2d.retain_grad()
-        self.opt.zero_grad()
-        if loss.requires_grad:
-            loss.backward()
-        self._update_stats(r, img.shape[1], img.shape[0])
-        self.opt.step(self.learning_rates(p))
-        with torch.no_grad():
-            mse = float(((img.detach().clamp(0, 1) - gt) ** 2).mean())
-        self.iteration += 1
-        self._maybe_adjust_anchors()
-        return {"loss": float(loss.detach()), "psnr": mse_to_psnr(max(mse, 1e-10)), "xi": xi, "view": i,
-                "gaussians": int(r.projected.count), "recon": float(l_recon.detach())}
+    def observe(self, r, width: int, height: int) -> None:
+        if self.stage < 2 and self.strategy.collecting(self.progress()):
+            self.strategy.observe(r, width, height)
 
-    @torch.no_grad()
-    def _update_stats(self, r, width: int, height: int) -> None:
-        """Scaffold-GS's training_statis: opacity of visible anchors, view-space gradient of drawn Gaussians."""
-        c = self.cfg
-        if self.stage >= 2 or self.progress() >= c.update_until:
-            return
-        if self.progress() < c.start_stat:
-            return
-        g, proj = r.gaussians, r.projected
-        K = self.anchors.n_offsets
-        vis = r.visible_anchor_index
-        self.anchor_denom[vis] += 1
-        if g.count:
-            self.opacity_accum.index_add_(0, g.anchor_index, g.opacities.detach().double())
-        grad = proj.means2d.grad
-        if grad is None or proj.count == 0:
-            return
-        # 3DGS measures the gradient in NDC-like units: d/d(ndc) = d/d(pixel) * (size / 2).
-        gn = (grad.double() * torch.tensor([0.5 * width, 0.5 * height], dtype=torch.float64)).norm(dim=1)
-        rows = proj.index
-        flat = g.anchor_index[rows] * K + g.slot[rows]
-        self.offset_grad_accum.index_add_(0, flat, gn)
-        self.offset_denom.index_add_(0, flat, torch.ones_like(gn))
-
-    # ------------------------------------------------------------------ growing and pruning
-    def _maybe_adjust_anchors(self) -> None:
-        c = self.cfg
-        if self.stage >= 2:
-            return
-        p = self.progress()
-        if c.update_from <= p < c.update_until and self.iteration - self.last_adjust >= self.update_interval():
-            self.last_adjust = self.iteration
-            self.adjust_anchors()
-
-    def update_interval(self) -> int:
-        """Iterations between anchor adjustments: Scaffold-GS's 100 in 30k scaled to short CPU runs (>= 10)."""
-        c = self.cfg
-        return int(min(c.update_interval, max(10, round(self.expected_iterations() * c.update_interval_frac))))
-
-    @torch.no_grad()
-    def adjust_anchors(self) -> None:
-        c = self.cfg
-        K = self.anchors.n_offsets
-        grads = self.offset_grad_accum / self.offset_denom
-        grads[~torch.isfinite(grads)] = 0.0
-        interval = self.update_interval()
-        offset_mask = self.offset_denom > interval * c.success_threshold * 0.5
-        n_before = self.anchors.num_anchors
-        if n_before < c.max_anchors:
-            self._grow(grads, offset_mask)
-        n_new = self.anchors.num_anchors - n_before
-        # Reset the gradient statistics of the offsets that were judged; new anchors start at zero.
-        self.offset_denom[offset_mask] = 0
-        self.offset_grad_accum[offset_mask] = 0
-        pad = torch.zeros(n_new * K, dtype=torch.float64)
-        self.offset_denom = torch.cat([self.offset_denom, pad])
-        self.offset_grad_accum = torch.cat([self.offset_grad_accum, pad])
-        padm = torch.zeros(n_new, dtype=torch.float64)
-        self.opacity_accum = torch.cat([self.opacity_accum, padm])
-        self.anchor_denom = torch.cat([self.anchor_denom, padm])
-        # Prune anchors seen often enough whose Gaussians stayed (nearly) transparent.
-        prune = self.opacity_accum < c.min_opacity * self.anchor_denom
-        judged = self.anchor_denom > interval * c.success_threshold
-        prune &= judged
-        self.opacity_accum[judged] = 0
-        self.anchor_denom[judged] = 0
-        if bool(prune.any()) and int((~prune).sum()) > 0:
-            keep = (~prune).nonzero().squeeze(1)
-            self._keep_anchors(keep)
-        if n_new or bool(prune.any()):
-            self.log(f"  anchors: +{n_new} grown, -{int(prune.sum())} pruned -> {self.anchors.num_anchors}")
-
-    def _keep_anchors(self, keep: torch.Tensor) -> None:
-        K = self.anchors.n_offsets
-        self.anchors.keep(keep)
-        for k, t in self.anchors.tensors().items():
-            self.opt.rebind(k, t, keep=keep)
-        flat = (keep[:, None] * K + torch.arange(K)).reshape(-1)
-        self.offset_grad_accum = self.offset_grad_accum[flat]
-        self.offset_denom = self.offset_denom[flat]
-        self.opacity_accum = self.opacity_accum[keep]
-        self.anchor_denom = self.anchor_denom[keep]
-
-    def _grow(self, grads: torch.Tensor, offset_mask: torch.Tensor) -> None:
-        """Scaffold-GS anchor_growing: new anchors in (coarse to fine) voxels holding high-gradient Gaussians."""
-        c = self.cfg
-        a = self.anchors
-        K = a.n_offsets
-        init_len = a.num_anchors * K
-        for i in range(c.update_depth):
-            threshold = c.grad_threshold * ((c.update_hierarchy_factor // 2) ** i)
-            cand = (grads >= threshold) & offset_mask
-            rand = torch.from_numpy(self.rng.random(cand.shape[0]) > 0.5 ** (i + 1))
-            cand = cand & rand
-            inc = a.num_anchors * K - init_len
-            if inc == 0 and i > 0:
-                continue
-            if inc:
-                cand = torch.cat([cand, torch.zeros(inc, dtype=torch.bool)])
-            if not bool(cand.any()):
-                continue
-            all_xyz = a.positions[:, None, :] + a.offsets.detach() * torch.exp(a.scalings.detach()[:, None, :3])
-            size = a.voxel_size * (c.update_init_factor // (c.update_hierarchy_factor**i))
-            grid = torch.round(a.positions / size).long()
-            sel_xyz = all_xyz.reshape(-1, 3)[cand]
-            sel_grid = torch.round(sel_xyz / size).long()
-            uniq, inverse = torch.unique(sel_grid, return_inverse=True, dim=0)
-            # Drop cells that already hold an anchor (exact integer-cell comparison via a hashed key).
-            existing = set(map(tuple, grid.tolist()))
-            new_mask = torch.tensor([tuple(u) not in existing for u in uniq.tolist()], dtype=torch.bool)
-            if not bool(new_mask.any()):
-                continue
-            new_pos = uniq[new_mask].double() * size
-            n = int(new_pos.shape[0])
-            if a.num_anchors + n > c.max_anchors:
-                n = max(0, c.max_anchors - a.num_anchors)
-                if n == 0:
-                    return
-            feats_rep = a.features.detach()[:, None, :].expand(-1, K, -1).reshape(-1, a.features.shape[1])[cand]
-            Fd = feats_rep.shape[1]
-            pooled = torch.full((uniq.shape[0], Fd), -torch.inf).scatter_reduce(
-                0, inverse[:, None].expand(-1, Fd), feats_rep, reduce="amax", include_self=True)
-            new_feat = pooled[new_mask][:n]
-            new_pos = new_pos[:n].float()
-            new_scal = torch.full((n, 6), math.log(size), dtype=torch.float32)
-            new_off = torch.zeros(n, K, 3)
-            a.append(new_pos, new_feat, new_off, new_scal)
-            for k, t in a.tensors().items():
-                self.opt.rebind(k, t, append=n)
+    def after_step(self) -> None:
+        if self.stage < 2:
+            self.strategy.maybe_adjust(self, self.anchors, self.opt, self.rng)
 
     # ------------------------------------------------------------------ stage 2
     def _predictor_config(self):
-        from .proxy import PredictorConfig, ProxyLeafConfig
-
         if self.cfg.predictor == "proxy-leaf-mlp":
             d = self.decoder.config
             return ProxyLeafConfig(feat_dim=self.cfg.feat_dim, n_offsets=self.cfg.n_offsets,
@@ -772,8 +424,6 @@ class Trainer(RunSchedule):
                                context=self.cfg.predictor_context)
 
     def _setup_proxies(self, mask: np.ndarray) -> None:
-        from .proxy import nearest_proxies, predictor_from_json
-
         a = self.anchors
         self.proxy_mask = torch.from_numpy(np.asarray(mask, dtype=bool))
         ctx = self.cfg.predictor_context if self.cfg.predictor == "residual" else 1
@@ -786,16 +436,12 @@ class Trainer(RunSchedule):
         self.stage = 2
 
     def proxy_cell_size(self) -> float:
-        from .proxy import default_cell_size
-
         c = self.cfg
         return c.proxy_cell if c.proxy_cell > 0 else default_cell_size(self.anchors.positions,
                                                                        self.anchors.voxel_size)
 
     def enter_stage2(self) -> None:
         """Freeze the anchor set, select proxies, warm the predictor up on L_recon alone, start joint training."""
-        from .proxy import TrainConfig, select_proxies, train_predictor
-
         c = self.cfg
         a = self.anchors
         cell = self.proxy_cell_size()
@@ -868,10 +514,7 @@ class Trainer(RunSchedule):
             "anchors/features": a.features.detach().numpy().copy(),
             "anchors/offsets": a.offsets.detach().numpy().copy(),
             "anchors/scalings": a.scalings.detach().numpy().copy(),
-            "stats/opacity_accum": self.opacity_accum.numpy().copy(),
-            "stats/anchor_denom": self.anchor_denom.numpy().copy(),
-            "stats/offset_grad_accum": self.offset_grad_accum.numpy().copy(),
-            "stats/offset_denom": self.offset_denom.numpy().copy(),
+            **self.strategy.state_arrays(),
             "view_stack": np.asarray(self.view_stack, dtype=np.int64),
         }
         for k, v in self.decoder.state_arrays().items():
@@ -887,22 +530,18 @@ class Trainer(RunSchedule):
         meta = {
             "kind": CHECKPOINT_KIND, "version": CHECKPOINT_VERSION, "config": self.cfg.to_json(),
             "dataset": str(self.dataset_root), "iteration": self.iteration, "elapsed": self.elapsed,
-            "stage": self.stage, "last_adjust": self.last_adjust, "voxel_size": a.voxel_size, "decoder": self.decoder.config.to_json(),
+            "stage": self.stage, "last_adjust": self.strategy.last_adjust, "voxel_size": a.voxel_size,
+            "decoder": self.decoder.config.to_json(),
             "rng": self.rng.bit_generator.state, "adam_steps": dict(self.opt.step_count),
             "ema_loss": self.ema_loss, "ema_psnr": self.ema_psnr, "history": self.history[-200:],
         }
         return meta, arrays
 
     def save_checkpoint(self, path: str | os.PathLike) -> None:
-        from .formats.container import write_container
-
         meta, arrays = self.checkpoint_arrays()
         write_container(path, meta, arrays, level=3)
 
     def load_checkpoint(self, path: str | os.PathLike) -> None:
-        from .formats.container import read_container
-        from .proxy import predictor_from_json
-
         ck = read_container(path)
         m = ck.meta
         if m.get("kind") != CHECKPOINT_KIND or m.get("version") != CHECKPOINT_VERSION:
@@ -917,18 +556,13 @@ class Trainer(RunSchedule):
                 raise ProxycodecError(f"checkpoint was made with different settings ({', '.join(diff[:5])}); "
                                       "resume with the same options or start afresh", path)
             arr = ck.arrays
-            self.anchors = TrainableAnchors(
-                torch.from_numpy(np.array(arr["anchors/positions"])), torch.from_numpy(np.array(arr["anchors/features"])),
-                torch.from_numpy(np.array(arr["anchors/offsets"])), torch.from_numpy(np.array(arr["anchors/scalings"])),
-                float(m["voxel_size"]))
+            self.anchors = TrainableAnchors(*(torch.from_numpy(np.array(arr[f"anchors/{k}"]))
+                                              for k in ("positions", "features", "offsets", "scalings")),
+                                            float(m["voxel_size"]))
             dcfg = DecoderConfig.from_json(m["decoder"])
             self.decoder = GaussianDecoder.from_arrays(
                 dcfg, {k[len("decoder/"):]: v for k, v in arr.items() if k.startswith("decoder/")})
-            self.opt = _Adam()
-            for k, t in self.anchors.tensors().items():
-                self.opt.add(k, t)
-            for k, p in self.decoder.named_parameters():
-                self.opt.add(f"decoder.{k}", p)
+            self.opt = self._optimiser()
             self.stage = int(m["stage"])
             self.predictor = None
             if self.stage >= 2:
@@ -941,13 +575,9 @@ class Trainer(RunSchedule):
                 self._setup_proxies(np.asarray(arr["proxy_mask"], dtype=bool))
                 self.predictor.train()
             self.opt.load_arrays(arr, m["adam_steps"])
-            self.opacity_accum = torch.from_numpy(np.array(arr["stats/opacity_accum"]))
-            self.anchor_denom = torch.from_numpy(np.array(arr["stats/anchor_denom"]))
-            self.offset_grad_accum = torch.from_numpy(np.array(arr["stats/offset_grad_accum"]))
-            self.offset_denom = torch.from_numpy(np.array(arr["stats/offset_denom"]))
+            self.strategy.load_arrays(arr, m.get("last_adjust", 0))
             self.view_stack = [int(x) for x in arr["view_stack"]]
             self.iteration = int(m["iteration"])
-            self.last_adjust = int(m.get("last_adjust", 0))
             self.elapsed = float(m["elapsed"])
             self.rng = np.random.default_rng()
             self.rng.bit_generator.state = m["rng"]
@@ -955,9 +585,6 @@ class Trainer(RunSchedule):
             self.history = list(m.get("history", []))
         except KeyError as e:
             raise ProxycodecError(f"checkpoint is missing {e}", path) from None
-
-    def checkpoint_meta_for_predictor(self) -> dict:
-        return {"predictor": self.predictor.config.to_json()} if self.predictor is not None else {}
 
 
 # ================================================================================================ saving
@@ -973,7 +600,7 @@ def save_fitted(result: FitResult, ply_path: str | os.PathLike) -> tuple[Path, P
     tmp = Path(tempfile.mkdtemp(prefix=f".{ply_path.name}.", suffix=".tmp", dir=ply_path.parent))
     try:
         tmp_ply = tmp / ply_path.name
-        _save_model(result.model, tmp_ply, result.extra_meta, result.extra_arrays)
+        result.model.save(tmp_ply, extra_meta=result.extra_meta, extra_arrays=result.extra_arrays)
         os.replace(weights_path_for(tmp_ply), weights_path_for(ply_path))
         os.replace(tmp_ply, ply_path)
     finally:
@@ -981,61 +608,7 @@ def save_fitted(result: FitResult, ply_path: str | os.PathLike) -> tuple[Path, P
     return ply_path, weights_path_for(ply_path)
 
 
-def _save_model(model: SceneModel, ply_path: Path, extra_meta: dict, extra_arrays: dict) -> None:
-    model.save(ply_path, extra_meta=extra_meta, extra_arrays=extra_arrays)
-
-
-def load_predictor(weights_path: str | os.PathLike):
-    """(predictor, proxy mask) stored by ``fit`` in a weights sidecar, or (None, None) when it has none.
-
-    Also (None, None) for the Proxy&Leaf MLP ablation (``fit --predictor proxy-leaf-mlp``): the container stores
-    residual predictors only, so ``encode`` selects proxies and fits a residual predictor of its own for such a scene
-    (its PLY already holds the leaves' predicted features, which is what ``eval`` measures)."""
-    from .formats.container import read_container
-    from .proxy import PredictorConfig, ResidualPredictor
-
-    c = read_container(weights_path)
-    fit_meta = c.meta.get("fit", {})
-    if "predictor" not in fit_meta:
-        return None, None
-    if isinstance(fit_meta["predictor"], dict) and fit_meta["predictor"].get("kind", "residual") != "residual":
-        return None, None
-    cfg = PredictorConfig.from_json(fit_meta["predictor"])
-    pred = ResidualPredictor.from_arrays(cfg, {k[len("predictor/"):]: v for k, v in c.arrays.items()
-                                               if k.startswith("predictor/")})
-    return pred.eval(), np.asarray(c.arrays["proxy_mask"], dtype=bool)
-
-
-# ================================================================================================ the loop
-def _fmt_time(s: float) -> str:
-    s = max(0, int(s))
-    return f"{s // 3600:d}:{s % 3600 // 60:02d}:{s % 60:02d}" if s >= 3600 else f"{s // 60:02d}:{s % 60:02d}"
-
-
-
-def timed_step(tr, log_every: float, last_log: float, log: ProgressFn, detail, hist_extra) -> tuple[dict, bool]:
-    """One ``tr.train_step()``, timed into ``tr.elapsed``; EMA loss/PSNR; a progress line (and a history entry) at
-    most every ``log_every`` seconds, on the first and on the last iteration. ``detail(st)``: the trainer's own
-    fields for the line; ``hist_extra()``: its own history fields. Shared by the anchor and the explicit trainers.
-    -> (the step's stats, whether a line was written)."""
-    t0 = time.perf_counter()
-    st = tr.train_step()
-    tr.elapsed += time.perf_counter() - t0
-    a = 0.05 if tr.ema_loss is not None else 1.0
-    tr.ema_loss = st["loss"] if tr.ema_loss is None else (1 - a) * tr.ema_loss + a * st["loss"]
-    tr.ema_psnr = st["psnr"] if tr.ema_psnr is None else (1 - a) * tr.ema_psnr + a * st["psnr"]
-    if not (time.perf_counter() - last_log >= log_every or tr.done() or tr.iteration == 1):
-        return st, False
-    p = tr.progress()
-    eta = tr.elapsed * (1 - p) / max(p, 1e-9)
-    total = tr.cfg.iters if tr.cfg.iters is not None else "?"
-    log(f"it {tr.iteration:6d}/{total}  loss {tr.ema_loss:.4f}  psnr {tr.ema_psnr:5.2f}  {detail(st)}  "
-        f"{_fmt_time(tr.elapsed)} elapsed  eta {_fmt_time(eta)}")
-    tr.history.append({"it": tr.iteration, "loss": round(tr.ema_loss, 6), "psnr": round(tr.ema_psnr, 4),
-                       **hist_extra(), "seconds": round(tr.elapsed, 2)})
-    return st, True
-
-
+# ================================================================================================ the run
 def fit(data, out_ply: str | os.PathLike, config: FitConfig = FitConfig(), *, dataset_root: str = "",
         resume: bool = False, log: ProgressFn | None = None, keep_checkpoint: bool = False,
         stop_after: int | None = None) -> FitResult:
@@ -1045,7 +618,6 @@ def fit(data, out_ply: str | os.PathLike, config: FitConfig = FitConfig(), *, da
     are removed after success unless ``keep_checkpoint``. ``resume`` continues from that checkpoint.
     ``stop_after`` (tests) raises ``KeyboardInterrupt`` after that many iterations of this call.
     """
-    torch.set_num_threads(2)
     log = log or (lambda s: print(s, file=sys.stderr, flush=True))
     ckpt = checkpoint_path_for(out_ply)
     t_setup = time.perf_counter()
@@ -1054,25 +626,26 @@ def fit(data, out_ply: str | os.PathLike, config: FitConfig = FitConfig(), *, da
         if not ckpt.exists():
             raise ProxycodecError("no checkpoint to resume from", ckpt)
         tr.load_checkpoint(ckpt)
-        log(f"resumed from {ckpt} at iteration {tr.iteration} ({_fmt_time(tr.elapsed)} trained)")
+        log(f"resumed from {ckpt} at iteration {tr.iteration} ({fmt_time(tr.elapsed)} trained)")
     log(f"fit: {len(data.train_indices)} training views, {tr.anchors.num_anchors} anchors "
         f"(voxel {tr.anchors.voxel_size:.4g}), setup {time.perf_counter() - t_setup:.1f} s; "
         f"iters {config.iters}, time budget {config.time_budget}")
-    last_ckpt = last_log = time.perf_counter()
-    n_this_call = 0
+    last_ckpt = time.perf_counter()
+    steps = 0
+
+    def between_steps(now: float) -> None:
+        nonlocal last_ckpt, steps
+        steps += 1
+        if config.checkpoint_every > 0 and now - last_ckpt >= config.checkpoint_every and not tr.done():
+            tr.save_checkpoint(ckpt)
+            last_ckpt = time.perf_counter()
+        if stop_after is not None and steps >= stop_after:
+            raise KeyboardInterrupt
+
     try:
-        while not tr.done():
-            _, logged = timed_step(tr, config.log_every, last_log, log, lambda st: (
-                f"xi {st['xi']:.2f}  gauss {st['gaussians']:7d}  anchors {tr.anchors.num_anchors:6d}  "
-                f"stage {tr.stage}"), lambda: {"anchors": tr.anchors.num_anchors})
-            n_this_call += 1
-            now = time.perf_counter()
-            last_log = now if logged else last_log
-            if config.checkpoint_every > 0 and now - last_ckpt >= config.checkpoint_every and not tr.done():
-                tr.save_checkpoint(ckpt)
-                last_ckpt = time.perf_counter()
-            if stop_after is not None and n_this_call >= stop_after:
-                raise KeyboardInterrupt
+        run_until_done(tr, log, lambda st: (
+            f"xi {st['xi']:.2f}  gauss {st['gaussians']:7d}  anchors {tr.anchors.num_anchors:6d}  "
+            f"stage {tr.stage}"), lambda: {"anchors": tr.anchors.num_anchors}, between_steps)
         res = tr.result()
         save_fitted(res, out_ply)
     except BaseException:
@@ -1084,6 +657,6 @@ def fit(data, out_ply: str | os.PathLike, config: FitConfig = FitConfig(), *, da
     if not keep_checkpoint:
         with contextlib.suppress(FileNotFoundError):
             ckpt.unlink()
-    log(f"done: {tr.iteration} iterations in {_fmt_time(tr.elapsed)}, {tr.anchors.num_anchors} anchors -> "
+    log(f"done: {tr.iteration} iterations in {fmt_time(tr.elapsed)}, {tr.anchors.num_anchors} anchors -> "
         f"{out_ply}")
     return res

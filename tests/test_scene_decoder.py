@@ -151,3 +151,24 @@ def test_film_does_not_extrapolate_outside_its_training_band():
                                     if k != "film_xi_range"}).film_xi_range == (0.1, 1.0)
     with pytest.raises(ProxycodecError, match="film_xi_range"):
         DecoderConfig(film_xi_range=(1.0, 0.1))
+
+
+def test_the_sample_scene_is_the_same_bytes_for_a_seed_whatever_torch_drew_before(tmp_path):
+    """``proxycodec sample`` is deterministic: its decoder's randomly initialised layers (the FiLM MLP's first
+    layer) are drawn from the scene's seed, not from torch's global stream (which the caller may have advanced)."""
+    from proxycodec.sample import sample_model
+
+    torch.manual_seed(123)
+    a = sample_model(0)
+    torch.rand(1000)  # the global stream moved on
+    b = sample_model(0)
+    wa, wb = a.decoder.state_arrays(), b.decoder.state_arrays()
+    assert sorted(wa) == sorted(wb)
+    for k in wa:
+        assert wa[k].tobytes() == wb[k].tobytes(), k
+    after = torch.rand(1)
+    torch.manual_seed(123)
+    torch.rand(1000)
+    assert torch.equal(after, torch.rand(1)), "sampling must not consume the caller's torch random stream"
+    pa, pb = a.save(tmp_path / "a.ply"), b.save(tmp_path / "b.ply")
+    assert [p.read_bytes() for p in pa] == [p.read_bytes() for p in pb]

@@ -150,7 +150,7 @@ class TestProxyLeafMLP:
 
         from proxycodec import codec
         from proxycodec.model import SceneModel, weights_path_for
-        from proxycodec.train import load_predictor
+        from proxycodec.proxy import load_fitted_predictor as load_predictor
 
         out = tmp_path / "pl.ply"
         res = _fit(tiny[0], out, small_config(predictor="proxy-leaf-mlp", recon_loss="l1"))

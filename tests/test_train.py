@@ -157,7 +157,8 @@ class TestFit:
 
     def test_output_reloads_in_a_new_process(self, data, tmp_path):
         from proxycodec.model import SceneModel, weights_path_for
-        from proxycodec.train import checkpoint_path_for, load_predictor
+        from proxycodec.proxy import load_fitted_predictor as load_predictor
+        from proxycodec.train import checkpoint_path_for
 
         out = tmp_path / "scene.ply"
         res = _fit(data, out, small_config(iters=24))
@@ -221,6 +222,7 @@ class TestFit:
 
     def test_no_partial_output_after_an_exception(self, data, tmp_path, monkeypatch):
         from proxycodec import train
+        from proxycodec.model import SceneModel
 
         out = tmp_path / "scene.ply"
 
@@ -228,13 +230,13 @@ class TestFit:
             raise RuntimeError("disk full")
 
         # An exception while saving the pair leaves neither file (nor temporaries) behind.
-        real = train._save_model
+        real = SceneModel.save
 
-        def half(model, ply, meta, arrays):
-            real(model, ply, meta, arrays)
+        def half(model, *args, **kwargs):
+            real(model, *args, **kwargs)
             boom()
 
-        monkeypatch.setattr(train, "_save_model", half)
+        monkeypatch.setattr(SceneModel, "save", half)
         with pytest.raises(RuntimeError):
             _fit(data, out, small_config(iters=4, proxies=False))
         assert sorted(p.name for p in tmp_path.iterdir()) == ["scene.ckpt.pxc"]
@@ -251,7 +253,7 @@ class TestFit:
         from proxycodec.codec import EncodeConfig, decode, encode
         from proxycodec.model import SceneModel, weights_path_for
         from proxycodec.proxy import nearest_proxy
-        from proxycodec.train import load_predictor
+        from proxycodec.proxy import load_fitted_predictor as load_predictor
 
         cfg = small_config(iters=24, predict_offsets=True)
         out = tmp_path / "po.ply"
@@ -291,14 +293,14 @@ class TestFit:
         from proxycodec.train import Trainer
 
         calls = []
-        orig = Trainer._features_for
+        orig = Trainer.leaf_tables
 
         def run(force):
             def spy(self, cam, with_recon=True):
                 calls.append(with_recon)
                 return orig(self, cam, True if force else with_recon)
 
-            monkeypatch.setattr(Trainer, "_features_for", spy)
+            monkeypatch.setattr(Trainer, "leaf_tables", spy)
             tr = Trainer(data, small_config(iters=20), "tiny")
             losses = [tr.train_step()["loss"] for _ in range(20)]
             assert tr.stage == 2
@@ -313,7 +315,7 @@ class TestFit:
     def test_spread_proxy_selection_is_the_stored_split(self, data, tmp_path):
         from proxycodec.model import SceneModel, weights_path_for
         from proxycodec.proxy import select_proxies
-        from proxycodec.train import load_predictor
+        from proxycodec.proxy import load_fitted_predictor as load_predictor
 
         out = tmp_path / "spread.ply"
         _fit(data, out, small_config(iters=12, proxy_selection="spread", proxy_cell=0.3))
@@ -324,7 +326,7 @@ class TestFit:
 
     def test_ablation_switches(self, data, tmp_path):
         from proxycodec.model import SceneModel
-        from proxycodec.train import load_predictor
+        from proxycodec.proxy import load_fitted_predictor as load_predictor
 
         out = tmp_path / "plain.ply"
         _fit(data, out, small_config(iters=6, fixed_res=True, gate=False, embedding="none", proxies=False))
@@ -341,7 +343,7 @@ class TestFit:
             tr.train_step()
         assert tr.anchors.num_anchors != n0
         K = tr.anchors.n_offsets
-        assert tr.offset_denom.shape[0] == tr.anchors.num_anchors * K
+        assert tr.strategy.offset_denom.shape[0] == tr.anchors.num_anchors * K
         assert tr.opt.m["features"].shape == tr.anchors.features.shape
 
 

@@ -1,0 +1,251 @@
+"""The training loop every scene trainer shares: the anchor fit (``train.Trainer``), the explicit 3DGS baseline
+(``explicit.ExplicitTrainer``) and what builds on them.
+
+One iteration is always the same sequence (``TrainingRun.optimise``)::
+
+    sample view and resolution -> render -> loss -> backward -> gradient statistics -> optimiser step -> strategy
+
+A trainer subclasses ``TrainingRun``; it renders, computes its loss, and supplies two hooks: ``observe`` (the
+gradient statistics a densification strategy keeps, read after ``backward``) and ``after_step`` (growing,
+pruning, densifying). Also here: what both trainers draw their run from (run length, initial points, targets).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections import OrderedDict
+from collections.abc import Callable
+
+import numpy as np
+import torch
+
+from .errors import ProxycodecError
+from .metrics import dssim, mse_to_psnr
+
+__all__ = [
+    "ProgressFn", "TargetImages", "TrainingRun", "check_run_length", "fmt_time", "initial_points", "knn_scale",
+    "ndc_grad_norm", "photometric_loss", "run_until_done",
+]
+
+ProgressFn = Callable[[str], None]
+
+
+# ================================================================================================ what a run is given
+def check_run_length(iters: int | None, time_budget: float | None, max_width: int | None) -> None:
+    """The options every trainer shares: a number of iterations and/or a time budget; a sane reference width."""
+    if iters is None and time_budget is None:
+        raise ProxycodecError("give a number of iterations, a time budget, or both")
+    if iters is not None and int(iters) < 1:
+        raise ProxycodecError(f"iterations must be >= 1, got {iters}")
+    if time_budget is not None and not (time_budget > 0):
+        raise ProxycodecError(f"time budget must be positive, got {time_budget}")
+    if max_width is not None and int(max_width) < 8:
+        raise ProxycodecError(f"max width must be >= 8 pixels, got {max_width}")
+
+
+def knn_scale(points: np.ndarray) -> np.ndarray:
+    """[N] sqrt of the mean squared distance to the 3 nearest neighbours (3DGS's distCUDA2), floored."""
+    from scipy.spatial import cKDTree
+
+    n = len(points)
+    if n < 2:
+        return np.full(n, 0.01)
+    k = min(4, n)
+    d, _ = cKDTree(points).query(points, k=k)
+    d2 = (d[:, 1:] ** 2).mean(1)
+    return np.sqrt(np.maximum(d2, 1e-7))
+
+
+def initial_points(data, n_random: int, rng: np.random.Generator, what: str
+                   ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, float]:
+    """-> (points [N, 3] float64, their SfM colours [N, 3] 0..255 or None, bounds [2, 3], extent): the dataset's SfM
+    points within half an extent of its bounds, or (Blender, no SfM points) ``n_random`` uniform points in the
+    bounds, 3DGS/Scaffold-GS's random init for NeRF-Synthetic."""
+    bounds = np.asarray(data.bounds, dtype=np.float64)
+    extent = float((bounds[1] - bounds[0]).max())
+    if extent <= 0 or not math.isfinite(extent):
+        raise ProxycodecError(f"dataset bounds are empty; cannot place initial {what}")
+    pts = data.points
+    if pts is not None and len(pts) >= 8:
+        pts = np.asarray(pts, dtype=np.float64)
+        inside = ((pts >= bounds[0] - 0.5 * extent) & (pts <= bounds[1] + 0.5 * extent)).all(1)
+        colors = None if data.point_colors is None else np.asarray(data.point_colors, dtype=np.float64)[inside]
+        return pts[inside], colors, bounds, extent
+    return bounds[0] + rng.random((n_random, 3)) * (bounds[1] - bounds[0]), None, bounds, extent
+
+
+class TargetImages:
+    """Training targets at any xi: the dataset's 100% image (kept in a byte-bounded float16 LRU cache) area-resized
+    with the dataset's own filter (``formats.images.resize_image``: PIL BOX, the exact area average).
+
+    ``PosedImages.load_image(i, xi)`` decodes the file on every new size; with a random xi per iteration that is
+    ~0.1 s per iteration on lego, the cost of a whole rendering step at low resolution. The 100% image is the
+    dataset's anti-aliased reference, so a target is the area average of the reference (within float16 rounding,
+    < 5e-4) rather than of the file's pixels directly; evaluation always uses ``load_image``.
+
+    Any object with ``get(view, xi) -> [h, w, 3] tensor`` can stand in for it (e.g. a teacher scene's renders).
+    """
+
+    def __init__(self, data, max_bytes: int):
+        self.data = data
+        self.max_bytes = int(max_bytes)
+        self.items: OrderedDict[int, np.ndarray] = OrderedDict()
+        self.nbytes = 0
+
+    def reference(self, i: int) -> np.ndarray:
+        a = self.items.get(i)
+        if a is not None:
+            self.items.move_to_end(i)
+            return a
+        a = self.data.load_image(i, 1.0).numpy().astype(np.float16)
+        if a.nbytes <= self.max_bytes:
+            self.items[i] = a
+            self.nbytes += a.nbytes
+            while self.nbytes > self.max_bytes:
+                _, old = self.items.popitem(last=False)
+                self.nbytes -= old.nbytes
+        return a
+
+    def get(self, i: int, xi: float) -> torch.Tensor:
+        from .formats.images import resize_image
+
+        ref = self.reference(i)
+        w, h = self.data.image_size(i, xi)
+        return torch.from_numpy(resize_image(ref.astype(np.float32), w, h))
+
+
+# ================================================================================================ one iteration
+def photometric_loss(img: torch.Tensor, gt: torch.Tensor, lambda_dssim: float) -> torch.Tensor:
+    """3DGS's rendering loss: (1 - lambda) L1 + lambda D-SSIM."""
+    return (1 - lambda_dssim) * (img - gt).abs().mean() + lambda_dssim * dssim(img, gt)
+
+
+@torch.no_grad()
+def ndc_grad_norm(grad: torch.Tensor, width: int, height: int) -> torch.Tensor:
+    """[N] float64 |d loss / d mean2D| in 3DGS's NDC-like units (d/d(ndc) = d/d(pixel) * size / 2), which its
+    densification thresholds (0.0002) are stated in."""
+    return (grad.double() * torch.tensor([0.5 * width, 0.5 * height], dtype=torch.float64)).norm(dim=1)
+
+
+class TrainingRun:
+    """Where a run stands (``cfg.iters`` and/or ``cfg.time_budget`` against ``iteration`` and ``elapsed``) and the
+    one step sequence of every trainer.
+
+    A subclass sets ``data``, ``cfg`` (with ``iters``, ``time_budget``), ``rng``, ``opt`` (an ``optim.Adam``) and
+    ``images`` (targets), calls ``_start_run()``, and implements ``train_step`` with ``sample_view`` and
+    ``optimise``, plus the hooks ``observe`` and ``after_step``.
+    """
+
+    def _start_run(self) -> None:
+        """The run state every trainer keeps (and checkpoints, where it does)."""
+        self.iteration = 0
+        self.elapsed = 0.0
+        self.view_stack: list[int] = []
+        self.history: list[dict] = []
+        self.ema_loss: float | None = None
+        self.ema_psnr: float | None = None
+
+    # ------------------------------------------------------------------ where the run stands
+    def progress(self) -> float:
+        c = self.cfg
+        p = 0.0
+        if c.iters is not None:
+            p = self.iteration / c.iters
+        if c.time_budget is not None:
+            p = max(p, self.elapsed / c.time_budget)
+        return min(p, 1.0)
+
+    def done(self) -> bool:
+        return self.progress() >= 1.0
+
+    def expected_iterations(self) -> float:
+        """The run's length in iterations: ``iters``, or extrapolated from the pace so far under a time budget."""
+        c = self.cfg
+        if c.time_budget is None:
+            return float(c.iters)
+        p = self.progress()
+        est = self.iteration / p if p > 0.02 and self.iteration > 0 else float(c.iters or 1e9)
+        return min(est, float(c.iters)) if c.iters is not None else est
+
+    # ------------------------------------------------------------------ the step sequence
+    def next_view(self) -> int:
+        """Training views in random order, each once per epoch (``self.rng``)."""
+        if not self.view_stack:
+            self.view_stack = [int(i) for i in self.rng.permutation(self.data.train_indices)]
+        return self.view_stack.pop()
+
+    def sample_view(self, xi_range: tuple[float, float] | None) -> tuple[int, float, torch.Tensor]:
+        """-> (view, xi, its anti-aliased target at ``camera.scaled(xi)``): the next view, then xi ~ U[xi_range]
+        (1 when ``xi_range`` is None), both from ``self.rng``."""
+        i = self.next_view()
+        xi = 1.0 if xi_range is None else float(xi_range[0] + (xi_range[1] - xi_range[0]) * self.rng.random())
+        return i, xi, self.images.get(i, xi)
+
+    def optimise(self, loss: torch.Tensor, render, width: int, height: int, lrs: dict[str, float]) -> None:
+        """backward -> ``observe`` (gradient statistics) -> optimiser step -> iteration + 1 -> ``after_step``.
+        ``render`` has ``projected.means2d``, whose gradient ``observe`` reads."""
+        means2d = render.projected.means2d
+        if means2d.requires_grad:
+            means2d.retain_grad()
+        self.opt.zero_grad()
+        if loss.requires_grad:
+            loss.backward()
+        self.observe(render, width, height)
+        self.opt.step(lrs)
+        self.iteration += 1
+        self.after_step()
+
+    def observe(self, render, width: int, height: int) -> None:
+        """Gradient statistics for the densification strategy (after backward, before the step)."""
+
+    def after_step(self) -> None:
+        """The strategy's turn: grow, prune, densify (after the step)."""
+
+    @staticmethod
+    def step_stats(loss: torch.Tensor, img: torch.Tensor, gt: torch.Tensor) -> dict:
+        with torch.no_grad():
+            mse = float(((img.detach().clamp(0, 1) - gt) ** 2).mean())
+        return {"loss": float(loss.detach()), "psnr": mse_to_psnr(max(mse, 1e-10))}
+
+
+# ================================================================================================ the loop
+def fmt_time(s: float) -> str:
+    s = max(0, int(s))
+    return f"{s // 3600:d}:{s % 3600 // 60:02d}:{s % 60:02d}" if s >= 3600 else f"{s // 60:02d}:{s % 60:02d}"
+
+
+def timed_step(tr: TrainingRun, log_every: float, last_log: float, log: ProgressFn, detail, hist_extra
+               ) -> tuple[dict, bool]:
+    """One ``tr.train_step()``, timed into ``tr.elapsed``; EMA loss/PSNR; a progress line (and a history entry) at
+    most every ``log_every`` seconds, on the first and on the last iteration. ``detail(st)``: the trainer's own
+    fields for the line; ``hist_extra()``: its own history fields. -> (the step's stats, whether a line was
+    written)."""
+    t0 = time.perf_counter()
+    st = tr.train_step()
+    tr.elapsed += time.perf_counter() - t0
+    a = 0.05 if tr.ema_loss is not None else 1.0
+    tr.ema_loss = st["loss"] if tr.ema_loss is None else (1 - a) * tr.ema_loss + a * st["loss"]
+    tr.ema_psnr = st["psnr"] if tr.ema_psnr is None else (1 - a) * tr.ema_psnr + a * st["psnr"]
+    if not (time.perf_counter() - last_log >= log_every or tr.done() or tr.iteration == 1):
+        return st, False
+    p = tr.progress()
+    eta = tr.elapsed * (1 - p) / max(p, 1e-9)
+    total = tr.cfg.iters if tr.cfg.iters is not None else "?"
+    log(f"it {tr.iteration:6d}/{total}  loss {tr.ema_loss:.4f}  psnr {tr.ema_psnr:5.2f}  {detail(st)}  "
+        f"{fmt_time(tr.elapsed)} elapsed  eta {fmt_time(eta)}")
+    tr.history.append({"it": tr.iteration, "loss": round(tr.ema_loss, 6), "psnr": round(tr.ema_psnr, 4),
+                       **hist_extra(), "seconds": round(tr.elapsed, 2)})
+    return st, True
+
+
+def run_until_done(tr: TrainingRun, log: ProgressFn, detail, hist_extra,
+                   between_steps: Callable[[float], None] | None = None) -> None:
+    """``timed_step`` until the run is done; ``between_steps(now)`` after each step (checkpoints, test stops)."""
+    last_log = time.perf_counter()
+    while not tr.done():
+        _, logged = timed_step(tr, tr.cfg.log_every, last_log, log, detail, hist_extra)
+        now = time.perf_counter()
+        last_log = now if logged else last_log
+        if between_steps is not None:
+            between_steps(now)
