@@ -33,19 +33,18 @@ from .formats.container import (
 from .model import SceneModel, SceneRender, weights_path_for
 from .proxy import (
     PredictorConfig, ResidualPredictor, TrainConfig, TrainResult, default_cell_size, nearest_proxies,
-    load_fitted_predictor, select_proxies, torch_threads, train_predictor,
+    check_proxy_selection, load_fitted_predictor, select_proxies, torch_threads, train_predictor,
 )
 from .scene import AnchorScene
-# The decoder's reading of the sections is torch-free and shared with proxycodec.lite.
+# The scene format (both halves) is torch-free; proxycodec.lite reads containers through it too.
 from .sections import (
-    FLOAT_BITS, MAX_ANCHORS, PREDICT_CHUNK, QSCALE, SCENE_FORMAT, SCENE_KIND, _dequantize, _grid_to_xyz,
-    _weights_from_sections, guarded, pack_weights, read_scene_container, scene_extras, stored_anchors,
+    FLOAT_BITS, MAX_ANCHORS, OFFSETS, PREDICT_CHUNK, SCENE_FORMAT, SCENE_KIND, QuantizedAnchors, encode_positions,
+    guarded, pack_weights, quantize_anchors, read_scene_container, scene_extras, scene_metadata, scene_sections,
+    stored_anchors, weights_from_sections, zero_dead_offsets,
 )
 
 __all__ = ["EncodeConfig", "EncodeReport", "CompressedScene", "encode", "decode", "load", "stats", "render",
            "SCENE_KIND", "SCENE_FORMAT"]
-
-GRID_SUBDIVISIONS = 4  # positions may sit on voxel / 2^j for j <= this (Scaffold-GS grows anchors on finer grids)
 
 Progress = Callable[[str], None]
 
@@ -58,7 +57,7 @@ class EncodeConfig:
     cell_target: float = 10.0
     proxy_selection: str = "random"  # "random" (the paper's) | "spread" (proxy.select_proxies), when not as fitted
     feature_bits: int = 8  # proxy features, uniform per channel (32 = float32)
-    offset_bits: int = 8  # 6 bits: -10% file on lego but -0.16 dB (SPEC.md)
+    offset_bits: int = 8  # the most sensitive part of the file (SPEC.md section 4)
     scaling_bits: int = 8
     weights_dtype: str = "q8"  # MLP weights: "f16" | "f32" | "q8" (int8 matrices with per-row scales)
     max_cameras: int = 16  # default cameras kept in the container (evenly spaced over the model's cameras)
@@ -76,11 +75,15 @@ class EncodeConfig:
     use_fitted: bool = True  # a stage-2 predictor + proxy mask in the weights sidecar (proxycodec fit) is used as is
     # Offsets of neural Gaussians that are never drawn (opacity <= dead_threshold from every sampled viewpoint and
     # resolution) are stored as the level nearest 0: the decoder never places them, so their value is free.
-    # Off by default: on lego it saves 1.3-1.7% of the file for ~9x the encode time (SPEC.md section 4).
+    # Off by default: it saves little for much encode time (SPEC.md section 4).
     drop_dead_offsets: bool = False
     dead_threshold: float = -0.02
 
+    def __post_init__(self) -> None:
+        self.check()
+
     def check(self) -> "EncodeConfig":
+        """Raise ``ProxycodecError`` on an invalid setting (also run when the config is built)."""
         if not (0.0 < self.proxy_ratio <= 1.0):
             raise ProxycodecError(f"proxy ratio must be in (0, 1], got {self.proxy_ratio}")
         if self.cell_size is not None and not (math.isfinite(self.cell_size) and self.cell_size > 0):
@@ -93,8 +96,6 @@ class EncodeConfig:
             raise ProxycodecError(f"weights dtype must be f16, f32 or q8, got {self.weights_dtype!r}")
         if self.max_cameras < 0:
             raise ProxycodecError("max cameras must be >= 0")
-        from .proxy import check_proxy_selection
-
         check_proxy_selection(self.proxy_selection)
         if not (1 <= self.zstd_level <= 22):
             raise ProxycodecError(f"zstd level must be 1..22, got {self.zstd_level}")
@@ -134,86 +135,7 @@ class EncodeReport:
                     "iters": self.training.iters}}
 
 
-# ---------------------------------------------------------------------------------------------- quantisation
-def _quantize(x: np.ndarray, bits: int) -> tuple[np.ndarray, dict]:
-    """[C, N] float -> (stored array, parameters). Uniform per channel; bits == 32 stores float32 unchanged."""
-    x = np.asarray(x, dtype=np.float32)
-    if bits == FLOAT_BITS:
-        return np.ascontiguousarray(x), {"bits": FLOAT_BITS}
-    levels = (1 << bits) - 1
-    xd = x.astype(np.float64)
-    if xd.shape[1]:
-        lo, hi = xd.min(1), xd.max(1)
-    else:
-        lo = hi = np.zeros(xd.shape[0])
-    scale = np.where(hi > lo, (hi - lo) / levels, 0.0)
-    q = np.zeros(xd.shape, dtype=np.float64)
-    nz = scale > 0
-    q[nz] = np.rint((xd[nz] - lo[nz, None]) / scale[nz, None])
-    q = np.clip(q, 0, levels).astype(np.uint8 if bits <= 8 else np.uint16)
-    return q, {"bits": int(bits), "offset": [float(v) for v in lo], "scale": [float(v) for v in scale]}
-
-
-# ---------------------------------------------------------------------------------------------- positions
-def _grid_positions(pos: np.ndarray, voxel: float) -> tuple[np.ndarray, dict] | None:
-    """Integer grid coordinates reproducing ``pos`` (float32) exactly, or None when the anchors are off-grid.
-
-    Tries steps voxel / 2^j and two reconstruction rules: "f64" x = f32(i * step) computed in float64 (numpy),
-    "f32" x = f32(i) * f32(step) in float32 (what Scaffold-GS's torch code does).
-    """
-    p64 = pos.astype(np.float64)
-    for j in range(GRID_SUBDIVISIONS + 1):
-        step = voxel / (1 << j)
-        i = np.rint(p64 / step)
-        if len(i) and np.abs(i).max() >= 2**31 - 1:
-            return None
-        ii = i.astype(np.int64)
-        for rule in ("f64", "f32"):
-            if np.array_equal(_grid_to_xyz(ii, step, rule), pos):
-                return ii, {"mode": "grid", "step": step, "rule": rule}
-    return None
-
-
-def _morton_order(keys: np.ndarray, *ties: np.ndarray) -> np.ndarray:
-    """Stable z-order of [M, 3] non-negative int64 keys (21 bits per axis after a shift), ties by ``ties``."""
-    k = keys.astype(np.int64)
-    span = int(k.max(initial=0))
-    shift = max(0, span.bit_length() - 21)
-    k = (k >> shift).astype(np.uint64)
-    code = np.zeros(len(k), dtype=np.uint64)
-    for b in range(21):
-        for a in range(3):
-            code |= ((k[:, a] >> np.uint64(b)) & np.uint64(1)) << np.uint64(3 * b + a)
-    return np.lexsort(tuple(reversed(ties)) + (code,))
-
-
-def _small_int(a: np.ndarray) -> np.ndarray:
-    lo, hi = int(a.min(initial=0)), int(a.max(initial=0))
-    for dt in (np.int8, np.int16, np.int32, np.int64):
-        if np.iinfo(dt).min <= lo and hi <= np.iinfo(dt).max:
-            return a.astype(dt)
-    raise ProxycodecError("grid coordinates out of range")  # unreachable: |i| < 2^31
-
-
 # ---------------------------------------------------------------------------------------------- helpers
-def _weights_to_sections(prefix: str, arrays: dict[str, np.ndarray], dtype: str) -> dict[str, np.ndarray]:
-    """f32; f16 (where representable); or q8: matrices as int8 with a float32 scale per output row
-    (symmetric, ``w = q * scale``), vectors (biases) as f16."""
-    out = {}
-    for k, v in arrays.items():
-        v = np.asarray(v, dtype=np.float32)
-        if dtype == "q8" and v.ndim == 2:
-            scale = (np.abs(v).max(axis=1) / 127.0).astype(np.float32)
-            safe = np.where(scale > 0, scale, 1.0).astype(np.float32)
-            out[f"{prefix}/{k}"] = np.clip(np.rint(v / safe[:, None]), -127, 127).astype(np.int8)
-            out[f"{prefix}/{k}{QSCALE}"] = scale
-        elif dtype in ("f16", "q8") and np.all(np.abs(v) <= 65504.0):
-            out[f"{prefix}/{k}"] = v.astype(np.float16)
-        else:
-            out[f"{prefix}/{k}"] = v
-    return out
-
-
 def _source_model(source) -> tuple[SceneModel, int | None, str, tuple]:
     """(model, bytes of PLY + weights on disk or None, description, (fitted predictor, proxy mask) or (None, None))
     of what the user handed ``encode``."""
@@ -266,15 +188,63 @@ def encode(
     Knobs: the fields of ``EncodeConfig`` (given as ``config`` or as keyword arguments). ``predictor``: a trained
     ``ResidualPredictor`` (e.g. from stage-2 training) to fine-tune for ``predictor_iters`` (0: keep as is).
     """
-    if config is None:
-        config = EncodeConfig()
     unknown = set(knobs) - set(EncodeConfig.__dataclass_fields__)
     if unknown:
         raise ProxycodecError(f"unknown encode option(s): {', '.join(sorted(unknown))}")
-    cfg = replace(config, **knobs).check()
+    cfg = replace(config or EncodeConfig(), **knobs)
     say = progress or _progress_default
     t_start = time.perf_counter()
-    model, source_bytes, source_name, (fitted_pred, fitted_mask) = _source_model(source)
+    # 1. the scene, its positions coded and every per-anchor array in the stored (Morton) order
+    model, source_bytes, source_name, fitted = _source_model(source)
+    scene = _checked_scene(model, source_name)
+    K, Fd, voxel = scene.n_offsets, scene.feat_dim, float(scene.voxel_size)
+    pos = scene.positions.detach().cpu().numpy().astype(np.float32)
+    coding = encode_positions(pos, voxel)
+    feats, offs, scal = (getattr(scene, k).detach().float()[torch.from_numpy(coding.order)].numpy()
+                         for k in ("features", "offsets", "scalings"))
+    pos_sorted = pos[coding.order]
+    # 2. proxies and the predictor to start from (those of stage-2 training, when the scene comes from ``fit``)
+    mask, predictor, cfg, cell_size, proxy_source = _choose_proxies(cfg, pos_sorted, voxel, coding.order, fitted,
+                                                                    predictor, say)
+    # 3. quantise what is stored; 4. fit the predictor against what the decoder will see
+    q = quantize_anchors(feats, offs, scal, mask, feature_bits=cfg.feature_bits, offset_bits=cfg.offset_bits,
+                         scaling_bits=cfg.scaling_bits, predict_offsets=cfg.predict_offsets)
+    pred, tcfg, training, t_train = _fit_predictor(cfg, predictor, pos_sorted, mask, q, offs, Fd, K, voxel, say)
+    # 5. sections + metadata
+    sections = scene_sections(coding, mask, q, model.decoder.state_arrays(), pred.state_arrays(), cfg.weights_dtype)
+    if source_bytes is None:
+        source_bytes = _saved_size(model)
+    meta = scene_metadata(
+        coding, mask, q, feat_dim=Fd, n_offsets=K, voxel_size=voxel, bounds=np.stack([pos.min(0), pos.max(0)]),
+        predict_offsets=cfg.predict_offsets, weights_dtype=cfg.weights_dtype, decoder_config=model.decoder.config,
+        predictor_config=pred.config, cameras=_spread(model.cameras or [], cfg.max_cameras),
+        background=model.background,
+        training={**tcfg.to_json(), "baseline_loss": training.baseline_loss, "final_loss": training.final_loss,
+                  "loss": "feature L_recon (MSE + 0.1 cos)", "rendering_loss": False},
+        proxy={"source": proxy_source, "ratio": cfg.proxy_ratio, "cell_size": cell_size,
+               "cell_size_voxels": cell_size / voxel, "cell_target": cfg.cell_target, "seed": cfg.seed},
+        cameras_in_source=len(model.cameras or []), scene=_jsonable(dict(scene.metadata)),
+        source={"bytes": source_bytes, "name": os.path.basename(source_name)},
+        encoder={"zstd_level": cfg.zstd_level, "proxycodec": _version()})
+    # 6. the decoded model, through the decoder's own path (so report.model == decode(out), bit for bit)
+    err = ProxycodecError
+    decoded = _model_from_sections(meta, sections, err)
+    if cfg.drop_dead_offsets and not cfg.predict_offsets:
+        decoded = _drop_dead_offsets(decoded, sections, meta, q, cfg.dead_threshold, say)
+    packed, meta["weights_layout"] = pack_weights(sections)
+    file_bytes = write_container(out, meta, packed, level=cfg.zstd_level)
+    _, _, infos, _ = read_header(out)
+    say(f"wrote {out}: {file_bytes:,} B" + (f" ({source_bytes / file_bytes:.1f}x smaller than PLY + weights)"
+                                           if source_bytes else ""))
+    M, P = len(mask), int(mask.sum())
+    return EncodeReport(
+        path=Path(out), file_bytes=file_bytes, anchors=M, proxies=P, leaves=M - P, cell_size=cell_size,
+        sections=[s.to_json() for s in infos], source_bytes=source_bytes,
+        seconds={"total": time.perf_counter() - t_start, "predictor": t_train}, training=training,
+        model=decoded, meta=meta)
+
+
+def _checked_scene(model: SceneModel, source_name: str) -> AnchorScene:
     scene = model.scene.validate(source_name)
     M = scene.num_anchors
     if M == 0:
@@ -284,34 +254,16 @@ def encode(
     dcfg = model.decoder.config
     if scene.feat_dim != dcfg.feat_dim or scene.n_offsets != dcfg.n_offsets:
         raise ProxycodecError("anchor feature/offset counts do not match the decoder configuration")
-    K, Fd = scene.n_offsets, scene.feat_dim
-    voxel = float(scene.voxel_size)
+    return scene
 
-    # 1. positions: exact grid coordinates when possible, spatial (z-)order for every per-anchor section.
-    pos = scene.positions.detach().cpu().numpy().astype(np.float32)
-    grid = _grid_positions(pos, voxel)
-    if grid is not None:
-        ii, pinfo = grid
-        origin = ii.min(0)
-        rel = ii - origin
-        order = _morton_order(rel, rel[:, 0], rel[:, 1], rel[:, 2])
-        rel = rel[order]
-        deltas = np.diff(rel, axis=0, prepend=np.zeros((1, 3), np.int64)).T  # [3, M]
-        pos_sections = {"anchors/grid": _small_int(np.ascontiguousarray(deltas))}
-        pinfo = {**pinfo, "origin": [int(v) for v in origin], "order": "morton", "coding": "delta"}
-    else:
-        lo = pos.astype(np.float64).min(0)
-        cell = np.floor((pos.astype(np.float64) - lo) / voxel).astype(np.int64)
-        order = _morton_order(cell, pos[:, 0], pos[:, 1], pos[:, 2])
-        pos_sections = {"anchors/xyz": np.ascontiguousarray(pos[order].T)}
-        pinfo = {"mode": "float32", "order": "morton", "coding": "plain"}
-    perm = torch.from_numpy(order)
-    feats = scene.features.detach().float()[perm].numpy()
-    offs = scene.offsets.detach().float()[perm].numpy()  # [M, K, 3]
-    scal = scene.scalings.detach().float()[perm].numpy()
-    pos_sorted = pos[order]
 
-    # 2. proxies (those stage-2 training used, when the input comes from ``proxycodec fit``)
+def _choose_proxies(cfg: EncodeConfig, pos_sorted: np.ndarray, voxel: float, order: np.ndarray, fitted: tuple,
+                    predictor: ResidualPredictor | None, say: Progress):
+    """-> (proxy mask in the stored order, the predictor to start from or None, the config with the offsets mode
+    settled, cell size, where the split comes from). A stage-2 predictor with its proxy mask (from ``fit``) is used
+    as is, not refitted: it was trained jointly with the renderer."""
+    M = len(pos_sorted)
+    fitted_pred, fitted_mask = fitted
     cell_size = float(cfg.cell_size) if cfg.cell_size else default_cell_size(pos_sorted, voxel, cfg.cell_target)
     use_fitted = cfg.use_fitted and predictor is None and fitted_pred is not None and fitted_mask is not None
     if use_fitted:
@@ -323,7 +275,6 @@ def encode(
         if cfg.predict_offsets is not None and cfg.predict_offsets != fitted_po:
             raise ProxycodecError("the scene's stage-2 predictor " + ("predicts" if fitted_po else "does not predict")
                                   + " the leaves' offsets; drop the offsets option or refit the predictor")
-        # jointly trained with the renderer: used as is, not refitted
         cfg = replace(cfg, predictor_iters=0, predict_offsets=fitted_po)
         say("using the stage-2 proxies and predictor from the weights file (no refit)")
     else:
@@ -332,23 +283,13 @@ def encode(
         cfg = replace(cfg, predict_offsets=False)
     P = int(mask.sum())
     say(f"{M} anchors: {P} proxies, {M - P} leaves (cell {cell_size:g} = {cell_size / voxel:g} voxels)")
+    return mask, predictor, cfg, cell_size, "fit" if use_fitted else "encode"
 
-    # 3. quantise what is stored
-    q_scal, qp_scal = _quantize(scal.T, cfg.scaling_bits)
-    q_feat, qp_feat = _quantize(feats[mask].T, cfg.feature_bits)
-    off_rows = offs if not cfg.predict_offsets else offs[mask]
-    q_off, qp_off = _quantize(off_rows.reshape(len(off_rows), 3 * K).T, cfg.offset_bits)
-    err = lambda m: ProxycodecError(m)  # noqa: E731
-    feat_dq = feats.copy()
-    feat_dq[mask] = _dequantize(q_feat, qp_feat, "proxy/features", err).T
-    off_dq = offs.copy()
-    od = _dequantize(q_off, qp_off, "offsets", err).T.reshape(-1, K, 3)
-    if cfg.predict_offsets:
-        off_dq[mask] = od
-    else:
-        off_dq = od
 
-    # 4. predictor, fitted on the leaves against the dequantised proxies (what the decoder will see)
+def _fit_predictor(cfg: EncodeConfig, predictor: ResidualPredictor | None, pos_sorted: np.ndarray, mask: np.ndarray,
+                   q: QuantizedAnchors, offs: np.ndarray, Fd: int, K: int, voxel: float, say: Progress):
+    """The residual predictor (given, or new) fitted on the leaves against the dequantised proxies (what the
+    decoder will see) for ``cfg.predictor_iters``. -> (predictor, its TrainConfig, TrainResult, seconds)."""
     pcfg = PredictorConfig(feat_dim=Fd, n_offsets=K, predict_offsets=cfg.predict_offsets,
                            hidden=cfg.predictor_hidden, n_blocks=cfg.predictor_blocks, dist_ref=voxel,
                            context=cfg.predictor_context)
@@ -365,72 +306,32 @@ def encode(
     nearest = nearest_proxies(pos_sorted, mask, pcfg.context)
     tcfg = TrainConfig(iters=cfg.predictor_iters, lr=cfg.predictor_lr, lr_final=cfg.predictor_lr / 10,
                        sample_frac=cfg.leaf_sample, seed=cfg.seed)
-    t_train = time.perf_counter()
 
     def on_iter(it, total, loss, elapsed):
         eta = elapsed / it * (total - it)
         say(f"predictor  iter {it:5d}/{total}  L_recon {loss:.5f}  {elapsed:6.1f} s  ETA {eta:5.1f} s")
 
-    training = train_predictor(pred, torch.from_numpy(pos_sorted), torch.from_numpy(feat_dq), mask, nearest,
-                               offsets=torch.from_numpy(off_dq if not cfg.predict_offsets else
-                                                        np.where(mask[:, None, None], off_dq, offs)),
-                               config=tcfg, progress=on_iter, progress_every=max(1, min(100, cfg.predictor_iters // 10 or 1)))
-    t_train = time.perf_counter() - t_train
+    t0 = time.perf_counter()
+    offsets = q.offsets if not cfg.predict_offsets else np.where(mask[:, None, None], q.offsets, offs)
+    training = train_predictor(pred, torch.from_numpy(pos_sorted), torch.from_numpy(q.features), mask, nearest,
+                               offsets=torch.from_numpy(offsets), config=tcfg, progress=on_iter,
+                               progress_every=max(1, min(100, cfg.predictor_iters // 10 or 1)))
+    t_train = time.perf_counter() - t0
     say(f"predictor  L_recon over all leaves: proxy copy {training.baseline_loss:.5f} -> {training.final_loss:.5f}")
+    return pred, tcfg, training, t_train
 
-    # 5. sections + metadata
-    sections: dict[str, np.ndarray] = dict(pos_sections)
-    sections["anchors/proxy_mask"] = np.packbits(mask, bitorder="little")
-    sections["anchors/scalings"] = q_scal
-    sections["proxy/features"] = q_feat
-    sections["proxy/offsets" if cfg.predict_offsets else "anchors/offsets"] = q_off
-    sections.update(_weights_to_sections("decoder", model.decoder.state_arrays(), cfg.weights_dtype))
-    sections.update(_weights_to_sections("predictor", pred.state_arrays(), cfg.weights_dtype))
-    if source_bytes is None:
-        source_bytes = _saved_size(model)
-    bounds = np.stack([pos.min(0), pos.max(0)]).astype(np.float64)
-    meta = {
-        "kind": SCENE_KIND,
-        "scene_format": SCENE_FORMAT,
-        "anchors": {"count": M, "proxies": P, "leaves": M - P, "feat_dim": Fd, "n_offsets": K},
-        "voxel_size": voxel,
-        "bounds": bounds.tolist(),
-        "positions": pinfo,
-        "quant": {"scalings": qp_scal, "features": qp_feat, "offsets": qp_off},
-        "offsets": "predicted" if cfg.predict_offsets else "stored",
-        "weights_dtype": cfg.weights_dtype,
-        "decoder": dcfg.to_json(),
-        "predictor": pcfg.to_json(),
-        "training": {**tcfg.to_json(), "baseline_loss": training.baseline_loss, "final_loss": training.final_loss,
-                     "loss": "feature L_recon (MSE + 0.1 cos)", "rendering_loss": False},
-        "proxy": {"source": "fit" if use_fitted else "encode", "ratio": cfg.proxy_ratio, "cell_size": cell_size, "cell_size_voxels": cell_size / voxel,
-                  "cell_target": cfg.cell_target, "seed": cfg.seed},
-        "cameras": [c.to_json() for c in _spread(model.cameras or [], cfg.max_cameras)],
-        "cameras_in_source": len(model.cameras or []),
-        "background": [float(x) for x in model.background],
-        "scene": _jsonable(dict(scene.metadata)),
-        "source": {"bytes": source_bytes, "name": os.path.basename(source_name)},
-        "encoder": {"zstd_level": cfg.zstd_level, "proxycodec": _version()},
-    }
-    # 6. the decoded model, through the decoder's own path (so report.model == decode(out), bit for bit)
-    decoded = _model_from_sections(meta, sections, err)
-    if cfg.drop_dead_offsets and not cfg.predict_offsets:
-        dead = ~_live_slots(decoded, cfg.dead_threshold)  # [M, K] in stored (Morton) order
-        if dead.any():
-            sections["anchors/offsets"] = _zero_dead_offsets(q_off, qp_off, dead)
-            decoded = _model_from_sections(meta, sections, err)
-        meta["offsets_dead"] = {"slots": int(dead.sum()), "of": int(dead.size), "threshold": cfg.dead_threshold}
-        say(f"{int(dead.sum())} of {dead.size} neural Gaussians are never drawn: their offsets are stored as 0")
-    packed, meta["weights_layout"] = pack_weights(sections)
-    file_bytes = write_container(out, meta, packed, level=cfg.zstd_level)
-    _, _, infos, _ = read_header(out)
-    say(f"wrote {out}: {file_bytes:,} B" + (f" ({source_bytes / file_bytes:.1f}x smaller than PLY + weights)"
-                                           if source_bytes else ""))
-    return EncodeReport(
-        path=Path(out), file_bytes=file_bytes, anchors=M, proxies=P, leaves=M - P, cell_size=cell_size,
-        sections=[s.to_json() for s in infos], source_bytes=source_bytes,
-        seconds={"total": time.perf_counter() - t_start, "predictor": t_train}, training=training,
-        model=decoded, meta=meta)
+
+def _drop_dead_offsets(decoded: SceneModel, sections: dict, meta: dict, q: QuantizedAnchors, threshold: float,
+                       say: Progress) -> SceneModel:
+    """Store the offsets of never-drawn neural Gaussians as 0 (``sections`` and ``meta`` updated in place);
+    -> the decoded model of the result."""
+    dead = ~_live_slots(decoded, threshold)  # [M, K] in stored (Morton) order
+    if dead.any():
+        sections[OFFSETS] = zero_dead_offsets(sections[OFFSETS], q.quant["offsets"], dead)
+        decoded = _model_from_sections(meta, sections, ProxycodecError)
+    meta["offsets_dead"] = {"slots": int(dead.sum()), "of": int(dead.size), "threshold": threshold}
+    say(f"{int(dead.sum())} of {dead.size} neural Gaussians are never drawn: their offsets are stored as 0")
+    return decoded
 
 
 def _sample_viewpoints(model: SceneModel, n_dirs: int = 128) -> np.ndarray:
@@ -460,22 +361,6 @@ def _live_slots(model: SceneModel, threshold: float) -> np.ndarray:
     s = model.scene
     vp = torch.from_numpy(_sample_viewpoints(model)).to(s.positions.dtype)
     return live_slots(model.decoder, s.positions.detach(), s.features.detach(), vp, xis, threshold).numpy()
-
-
-def _zero_dead_offsets(q_off: np.ndarray, qp: dict, dead: np.ndarray) -> np.ndarray:
-    """Stored offsets [3K, M] with the dead slots' three channels set to each channel's level nearest 0."""
-    q = q_off.copy()
-    if qp.get("bits") == FLOAT_BITS:
-        zero = np.zeros(q.shape[0], q.dtype)
-    else:
-        off = np.asarray(qp["offset"], np.float64)
-        scale = np.asarray(qp["scale"], np.float64)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            zero = np.where(scale > 0, np.round(-off / np.where(scale > 0, scale, 1)), 0)
-        zero = np.clip(zero, 0, (1 << int(qp["bits"])) - 1).astype(q.dtype)
-    rows = np.repeat(dead.T, 3, axis=0)  # [3K, M]: channel k*3 + c belongs to slot k
-    q[rows] = np.broadcast_to(zero[:, None], q.shape)[rows]
-    return q
 
 
 def _spread(items: list, n: int) -> list:
@@ -539,8 +424,8 @@ def _model_from_sections(meta: dict, sections: dict[str, np.ndarray], err) -> Sc
 def _model_from_sections_unchecked(meta: dict, sections: dict[str, np.ndarray], err) -> SceneModel:
     a = stored_anchors(meta, sections, err)  # the stored arrays, dequantised, and the network configurations
     pos, mask, dcfg, pcfg = a.positions, a.proxy_mask, a.decoder_config, a.predictor_config
-    decoder = GaussianDecoder.from_arrays(dcfg, _weights_from_sections("decoder", sections, err)).eval()
-    predictor = ResidualPredictor.from_arrays(pcfg, _weights_from_sections("predictor", sections, err)).eval()
+    decoder = GaussianDecoder.from_arrays(dcfg, weights_from_sections("decoder", sections, err)).eval()
+    predictor = ResidualPredictor.from_arrays(pcfg, weights_from_sections("predictor", sections, err)).eval()
     # leaves
     pos_t, feat_t, off_t = torch.from_numpy(pos), torch.from_numpy(a.features), torch.from_numpy(a.offsets)
     leaves = torch.from_numpy(np.flatnonzero(~mask))

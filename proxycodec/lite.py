@@ -43,11 +43,11 @@ from .render._project_kernels import constants, project_forward
 from .render._raster_kernels import rasterize_forward
 from .sections import (
     PREDICT_CHUNK,
-    _weights_from_sections,
     guarded,
     read_scene_container,
     scene_extras,
     stored_anchors,
+    weights_from_sections,
 )
 from .weights import check_arrays
 
@@ -374,8 +374,8 @@ def _scene_from_sections(meta: dict, sections: dict[str, np.ndarray], err) -> Li
     if kind not in (None, "residual"):
         raise Unsupported(f"leaf predictor kind {kind!r}")
     a = stored_anchors(meta, sections, err)
-    decoder = Decoder(a.decoder_config, _weights_from_sections("decoder", sections, err))
-    predictor = Predictor(a.predictor_config, _weights_from_sections("predictor", sections, err))
+    decoder = Decoder(a.decoder_config, weights_from_sections("decoder", sections, err))
+    predictor = Predictor(a.predictor_config, weights_from_sections("predictor", sections, err))
     pos, feats, offs, mask = a.positions, a.features, a.offsets, a.proxy_mask
     leaves = np.flatnonzero(~mask)
     if leaves.size:

@@ -1,9 +1,14 @@
-"""A scene container's sections -> numpy arrays, torch-free (every section: ``formats/CONTAINER.md``).
+"""The scene format in one place, torch-free: numpy arrays <-> a scene container's sections and metadata (every
+section: ``formats/CONTAINER.md``).
 
-``codec.py`` decodes a container to a ``SceneModel`` (torch); ``proxycodec.lite`` decodes and renders one view
-without importing torch. Both read the container through the functions here (dequantisation, grid positions, the
-proxy split, weights with their int8 row scales, cameras), so the stored arrays come out bit for bit the same and
-a malformed file fails the same way, with one ``ContainerError``.
+Write half (``codec.encode``): positions as Morton-ordered grid deltas (``encode_positions``), uniform per-channel
+quantisation of the stored attributes (``quantize_anchors``), MLP weights as sections (``weights_to_sections``,
+``pack_weights``), and the sections and metadata a container holds (``scene_sections``, ``scene_metadata``).
+
+Read half: ``codec.py`` decodes a container to a ``SceneModel`` (torch); ``proxycodec.lite`` decodes and renders one
+view without importing torch. Both read the container through the functions here (dequantisation, grid positions,
+the proxy split, weights with their int8 row scales, cameras), so the stored arrays come out bit for bit the same
+and a malformed file fails the same way, with one ``ContainerError``.
 """
 
 from __future__ import annotations
@@ -29,12 +34,23 @@ PREDICT_CHUNK = 65536  # leaves per predictor batch (fixed: the same batches in 
 MAX_ANCHORS = 1 << 28
 QSCALE = ".qscale"  # suffix of the per-row scale section of an int8 ("q8") weight matrix
 
+GRID_SUBDIVISIONS = 4  # positions may sit on voxel / 2^j for j <= this (Scaffold-GS grows anchors on finer grids)
+
+# Section names (one place for the writer and both readers).
+GRID = "anchors/grid"  # int [3, M]: Morton-ordered grid coordinates, delta-coded per axis
+XYZ = "anchors/xyz"  # float32 [3, M]: positions that lie on no grid
+PROXY_MASK = "anchors/proxy_mask"  # uint8 [ceil(M / 8)]: packed bits, little bit order
+SCALINGS = "anchors/scalings"  # [6, M] quantised
+OFFSETS = "anchors/offsets"  # [3K, M] quantised: every anchor's offsets ("stored" mode)
+PROXY_FEATURES = "proxy/features"  # [F, P] quantised
+PROXY_OFFSETS = "proxy/offsets"  # [3K, P] quantised: the proxies' offsets only ("predicted" mode)
+
 ErrorFactory = Callable[[str], ProxycodecError]
 
 
 # ---------------------------------------------------------------------------------------------- primitives
-def _dequantize(q: np.ndarray, params: dict, name: str, err) -> np.ndarray:
-    """Inverse of ``codec._quantize``: offset + q * scale in float64, rounded once to float32."""
+def dequantize(q: np.ndarray, params: dict, name: str, err) -> np.ndarray:
+    """Inverse of ``quantize``: offset + q * scale in float64, rounded once to float32."""
     bits = params["bits"]
     if bits == FLOAT_BITS:
         if q.dtype != np.float32:
@@ -61,7 +77,26 @@ def _dequantize(q: np.ndarray, params: dict, name: str, err) -> np.ndarray:
     return x
 
 
-def _grid_to_xyz(ii: np.ndarray, step: float, rule: str) -> np.ndarray:
+def quantize(x: np.ndarray, bits: int) -> tuple[np.ndarray, dict]:
+    """[C, N] float -> (stored array, parameters). Uniform per channel; bits == 32 stores float32 unchanged."""
+    x = np.asarray(x, dtype=np.float32)
+    if bits == FLOAT_BITS:
+        return np.ascontiguousarray(x), {"bits": FLOAT_BITS}
+    levels = (1 << bits) - 1
+    xd = x.astype(np.float64)
+    if xd.shape[1]:
+        lo, hi = xd.min(1), xd.max(1)
+    else:
+        lo = hi = np.zeros(xd.shape[0])
+    scale = np.where(hi > lo, (hi - lo) / levels, 0.0)
+    q = np.zeros(xd.shape, dtype=np.float64)
+    nz = scale > 0
+    q[nz] = np.rint((xd[nz] - lo[nz, None]) / scale[nz, None])
+    q = np.clip(q, 0, levels).astype(np.uint8 if bits <= 8 else np.uint16)
+    return q, {"bits": int(bits), "offset": [float(v) for v in lo], "scale": [float(v) for v in scale]}
+
+
+def grid_to_xyz(ii: np.ndarray, step: float, rule: str) -> np.ndarray:
     if rule == "f64":
         return (ii.astype(np.float64) * step).astype(np.float32)
     return ii.astype(np.float32) * np.float32(step)
@@ -78,7 +113,8 @@ def _section(sections, name, err, shape=None, kinds="f") -> np.ndarray:
     return a
 
 
-def _weights_from_sections(prefix, sections, err) -> dict[str, np.ndarray]:
+def weights_from_sections(prefix, sections, err) -> dict[str, np.ndarray]:
+    """The ``prefix/*`` weight arrays as float32 (int8 matrices times their per-row scales)."""
     out = {}
     for k, v in sections.items():
         if not k.startswith(prefix + "/") or k.endswith(QSCALE):
@@ -95,6 +131,184 @@ def _weights_from_sections(prefix, sections, err) -> dict[str, np.ndarray]:
         else:
             raise err(f"section {k!r}: weights must be float16, float32 or int8 (with scales)")
     return out
+
+
+# ---------------------------------------------------------------------------------------------- writing
+def grid_positions(pos: np.ndarray, voxel: float) -> tuple[np.ndarray, dict] | None:
+    """Integer grid coordinates reproducing ``pos`` (float32) exactly, or None when the anchors are off-grid.
+
+    Tries steps voxel / 2^j and two reconstruction rules: "f64" x = f32(i * step) computed in float64 (numpy),
+    "f32" x = f32(i) * f32(step) in float32 (what Scaffold-GS's torch code does).
+    """
+    p64 = pos.astype(np.float64)
+    for j in range(GRID_SUBDIVISIONS + 1):
+        step = voxel / (1 << j)
+        i = np.rint(p64 / step)
+        if len(i) and np.abs(i).max() >= 2**31 - 1:
+            return None
+        ii = i.astype(np.int64)
+        for rule in ("f64", "f32"):
+            if np.array_equal(grid_to_xyz(ii, step, rule), pos):
+                return ii, {"mode": "grid", "step": step, "rule": rule}
+    return None
+
+
+def morton_order(keys: np.ndarray, *ties: np.ndarray) -> np.ndarray:
+    """Stable z-order of [M, 3] non-negative int64 keys (21 bits per axis after a shift), ties by ``ties``."""
+    k = keys.astype(np.int64)
+    span = int(k.max(initial=0))
+    shift = max(0, span.bit_length() - 21)
+    k = (k >> shift).astype(np.uint64)
+    code = np.zeros(len(k), dtype=np.uint64)
+    for b in range(21):
+        for a in range(3):
+            code |= ((k[:, a] >> np.uint64(b)) & np.uint64(1)) << np.uint64(3 * b + a)
+    return np.lexsort(tuple(reversed(ties)) + (code,))
+
+
+def small_int(a: np.ndarray) -> np.ndarray:
+    """``a`` in the smallest signed integer type that holds it."""
+    lo, hi = int(a.min(initial=0)), int(a.max(initial=0))
+    for dt in (np.int8, np.int16, np.int32, np.int64):
+        if np.iinfo(dt).min <= lo and hi <= np.iinfo(dt).max:
+            return a.astype(dt)
+    raise ProxycodecError("grid coordinates out of range")  # unreachable: |i| < 2^31
+
+
+@dataclass(frozen=True)
+class PositionCoding:
+    """How the anchor positions are stored: the stored (Morton) order, the position section, its metadata."""
+
+    order: np.ndarray  # [M] stored order: stored row r is input row order[r]
+    sections: dict[str, np.ndarray]
+    info: dict  # meta["positions"]
+
+
+def encode_positions(pos: np.ndarray, voxel: float) -> PositionCoding:
+    """Exact grid coordinates when a rule reproduces every float32 position (Morton order, per-axis deltas in the
+    smallest integer type), else the float32 positions themselves (lossless) in the Morton order of their voxels.
+    One order serves every per-anchor section."""
+    grid = grid_positions(pos, voxel)
+    if grid is not None:
+        ii, pinfo = grid
+        origin = ii.min(0)
+        rel = ii - origin
+        order = morton_order(rel, rel[:, 0], rel[:, 1], rel[:, 2])
+        rel = rel[order]
+        deltas = np.diff(rel, axis=0, prepend=np.zeros((1, 3), np.int64)).T  # [3, M]
+        return PositionCoding(order, {GRID: small_int(np.ascontiguousarray(deltas))},
+                              {**pinfo, "origin": [int(v) for v in origin], "order": "morton", "coding": "delta"})
+    lo = pos.astype(np.float64).min(0)
+    cell = np.floor((pos.astype(np.float64) - lo) / voxel).astype(np.int64)
+    order = morton_order(cell, pos[:, 0], pos[:, 1], pos[:, 2])
+    return PositionCoding(order, {XYZ: np.ascontiguousarray(pos[order].T)},
+                          {"mode": "float32", "order": "morton", "coding": "plain"})
+
+
+@dataclass(frozen=True)
+class QuantizedAnchors:
+    """The stored per-anchor attributes, quantised, and what the decoder will see after dequantisation."""
+
+    sections: dict[str, np.ndarray]  # SCALINGS, PROXY_FEATURES, OFFSETS or PROXY_OFFSETS
+    quant: dict  # meta["quant"]: per attribute, bits and per-channel offset/scale
+    features: np.ndarray  # [M, F]: the proxies' rows dequantised, the leaves' rows as given
+    offsets: np.ndarray  # [M, K, 3]: the stored rows dequantised (the leaves' as given when predicted)
+
+
+def quantize_anchors(features: np.ndarray, offsets: np.ndarray, scalings: np.ndarray, proxy_mask: np.ndarray, *,
+                     feature_bits: int, offset_bits: int, scaling_bits: int, predict_offsets: bool
+                     ) -> QuantizedAnchors:
+    """Arrays in the stored order -> their quantised sections (channel-major: one row per channel). Stored: every
+    anchor's scalings, the proxies' features, every anchor's offsets (the proxies' only when ``predict_offsets``)."""
+    err = ProxycodecError
+    M, K = offsets.shape[:2]
+    mask = proxy_mask
+    q_scal, qp_scal = quantize(scalings.T, scaling_bits)
+    q_feat, qp_feat = quantize(features[mask].T, feature_bits)
+    off_rows = offsets if not predict_offsets else offsets[mask]
+    q_off, qp_off = quantize(off_rows.reshape(len(off_rows), 3 * K).T, offset_bits)
+    feat_dq = features.copy()
+    feat_dq[mask] = dequantize(q_feat, qp_feat, PROXY_FEATURES, err).T
+    off_dq = offsets.copy()
+    od = dequantize(q_off, qp_off, OFFSETS, err).T.reshape(-1, K, 3)
+    if predict_offsets:
+        off_dq[mask] = od
+    else:
+        off_dq = od
+    sections = {SCALINGS: q_scal, PROXY_FEATURES: q_feat, (PROXY_OFFSETS if predict_offsets else OFFSETS): q_off}
+    return QuantizedAnchors(sections, {"scalings": qp_scal, "features": qp_feat, "offsets": qp_off}, feat_dq, off_dq)
+
+
+def weights_to_sections(prefix: str, arrays: dict[str, np.ndarray], dtype: str) -> dict[str, np.ndarray]:
+    """f32; f16 (where representable); or q8: matrices as int8 with a float32 scale per output row
+    (symmetric, ``w = q * scale``), vectors (biases) as f16."""
+    out = {}
+    for k, v in arrays.items():
+        v = np.asarray(v, dtype=np.float32)
+        if dtype == "q8" and v.ndim == 2:
+            scale = (np.abs(v).max(axis=1) / 127.0).astype(np.float32)
+            safe = np.where(scale > 0, scale, 1.0).astype(np.float32)
+            out[f"{prefix}/{k}"] = np.clip(np.rint(v / safe[:, None]), -127, 127).astype(np.int8)
+            out[f"{prefix}/{k}{QSCALE}"] = scale
+        elif dtype in ("f16", "q8") and np.all(np.abs(v) <= 65504.0):
+            out[f"{prefix}/{k}"] = v.astype(np.float16)
+        else:
+            out[f"{prefix}/{k}"] = v
+    return out
+
+
+def scene_sections(positions: PositionCoding, proxy_mask: np.ndarray, quantized: QuantizedAnchors,
+                   decoder_arrays: dict[str, np.ndarray], predictor_arrays: dict[str, np.ndarray],
+                   weights_dtype: str) -> dict[str, np.ndarray]:
+    """Every section of a scene container, in file order (scene format 1 names: ``pack_weights`` packs them)."""
+    sections: dict[str, np.ndarray] = dict(positions.sections)
+    sections[PROXY_MASK] = np.packbits(proxy_mask, bitorder="little")
+    sections.update(quantized.sections)
+    sections.update(weights_to_sections("decoder", decoder_arrays, weights_dtype))
+    sections.update(weights_to_sections("predictor", predictor_arrays, weights_dtype))
+    return sections
+
+
+def scene_metadata(positions: PositionCoding, proxy_mask: np.ndarray, quantized: QuantizedAnchors, *,
+                   feat_dim: int, n_offsets: int, voxel_size: float, bounds: np.ndarray, predict_offsets: bool,
+                   weights_dtype: str, decoder_config: DecoderConfig, predictor_config: PredictorConfig,
+                   cameras: list[Camera], background, **provenance) -> dict:
+    """The ``meta`` section of a scene container: what the readers need (counts, voxel size, position coding,
+    quantisation, offsets mode, network configurations, cameras, background) plus ``provenance`` (how the encoder
+    made it: training, proxy selection, source, encoder; JSON values, stored as given)."""
+    M, P = int(len(proxy_mask)), int(proxy_mask.sum())
+    return {
+        "kind": SCENE_KIND,
+        "scene_format": SCENE_FORMAT,
+        "anchors": {"count": M, "proxies": P, "leaves": M - P, "feat_dim": feat_dim, "n_offsets": n_offsets},
+        "voxel_size": voxel_size,
+        "bounds": np.asarray(bounds, dtype=np.float64).tolist(),
+        "positions": positions.info,
+        "quant": quantized.quant,
+        "offsets": "predicted" if predict_offsets else "stored",
+        "weights_dtype": weights_dtype,
+        "decoder": decoder_config.to_json(),
+        "predictor": predictor_config.to_json(),
+        "cameras": [c.to_json() for c in cameras],
+        "background": [float(x) for x in background],
+        **provenance,
+    }
+
+
+def zero_dead_offsets(q_off: np.ndarray, qp: dict, dead: np.ndarray) -> np.ndarray:
+    """Stored offsets [3K, M] with the dead slots' three channels set to each channel's level nearest 0."""
+    q = q_off.copy()
+    if qp.get("bits") == FLOAT_BITS:
+        zero = np.zeros(q.shape[0], q.dtype)
+    else:
+        off = np.asarray(qp["offset"], np.float64)
+        scale = np.asarray(qp["scale"], np.float64)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            zero = np.where(scale > 0, np.round(-off / np.where(scale > 0, scale, 1)), 0)
+        zero = np.clip(zero, 0, (1 << int(qp["bits"])) - 1).astype(q.dtype)
+    rows = np.repeat(dead.T, 3, axis=0)  # [3K, M]: channel k*3 + c belongs to slot k
+    q[rows] = np.broadcast_to(zero[:, None], q.shape)[rows]
+    return q
 
 
 # ---------------------------------------------------------------------------------------------- weight packing
@@ -224,7 +438,7 @@ def stored_anchors(meta: dict, sections: dict[str, np.ndarray], err: ErrorFactor
     # positions
     pinfo = meta["positions"]
     if pinfo["mode"] == "grid":
-        d = _section(sections, "anchors/grid", err, (3, M), "i").astype(np.int64)
+        d = _section(sections, GRID, err, (3, M), "i").astype(np.int64)
         rel = np.cumsum(d, axis=1).T
         origin = np.asarray([int(v) for v in pinfo["origin"]], dtype=np.int64)
         if origin.shape != (3,):
@@ -235,9 +449,9 @@ def stored_anchors(meta: dict, sections: dict[str, np.ndarray], err: ErrorFactor
         step = float(pinfo["step"])
         if not (math.isfinite(step) and step > 0) or pinfo["rule"] not in ("f64", "f32"):
             raise err("bad grid step or rule")
-        pos = _grid_to_xyz(ii, step, pinfo["rule"])
+        pos = grid_to_xyz(ii, step, pinfo["rule"])
     elif pinfo["mode"] == "float32":
-        pos = np.ascontiguousarray(_section(sections, "anchors/xyz", err, (3, M)).T)
+        pos = np.ascontiguousarray(_section(sections, XYZ, err, (3, M)).T)
         if pos.dtype != np.float32 or not np.all(np.isfinite(pos)):
             raise err("section 'anchors/xyz' must hold finite float32 values")
     else:
@@ -245,24 +459,24 @@ def stored_anchors(meta: dict, sections: dict[str, np.ndarray], err: ErrorFactor
     if not np.all(np.isfinite(pos)):
         raise err("positions are not finite")
     # split
-    bits = _section(sections, "anchors/proxy_mask", err, ((M + 7) // 8,), "u")
+    bits = _section(sections, PROXY_MASK, err, ((M + 7) // 8,), "u")
     mask = np.unpackbits(bits, count=M, bitorder="little").astype(bool)
     if int(mask.sum()) != P:
         raise err(f"proxy mask marks {int(mask.sum())} proxies, metadata says {P}")
     q = meta["quant"]
-    scal = _dequantize(_section(sections, "anchors/scalings", err, (6, M), "uf"), q["scalings"],
-                       "anchors/scalings", err).T
+    scal = dequantize(_section(sections, SCALINGS, err, (6, M), "uf"), q["scalings"],
+                       SCALINGS, err).T
     feats = np.zeros((M, Fd), dtype=np.float32)
-    feats[mask] = _dequantize(_section(sections, "proxy/features", err, (Fd, P), "uf"), q["features"],
-                              "proxy/features", err).T
+    feats[mask] = dequantize(_section(sections, PROXY_FEATURES, err, (Fd, P), "uf"), q["features"],
+                              PROXY_FEATURES, err).T
     offsets_mode = meta["offsets"]
     if offsets_mode == "stored":
-        offs = _dequantize(_section(sections, "anchors/offsets", err, (3 * K, M), "uf"), q["offsets"],
-                           "anchors/offsets", err).T.reshape(M, K, 3)
+        offs = dequantize(_section(sections, OFFSETS, err, (3 * K, M), "uf"), q["offsets"],
+                           OFFSETS, err).T.reshape(M, K, 3)
     elif offsets_mode == "predicted":
         offs = np.zeros((M, K, 3), dtype=np.float32)
-        offs[mask] = _dequantize(_section(sections, "proxy/offsets", err, (3 * K, P), "uf"), q["offsets"],
-                                 "proxy/offsets", err).T.reshape(P, K, 3)
+        offs[mask] = dequantize(_section(sections, PROXY_OFFSETS, err, (3 * K, P), "uf"), q["offsets"],
+                                 PROXY_OFFSETS, err).T.reshape(P, K, 3)
     else:
         raise err(f"unknown offsets mode {offsets_mode!r}")
     # networks

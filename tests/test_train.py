@@ -115,6 +115,24 @@ class TestConfig:
         with pytest.raises(ProxycodecError, match="proxy selection"):
             FitConfig(proxy_selection="fps")
 
+    def test_anchor_growing_ends_where_stage_2_starts_unless_told_otherwise(self):
+        from proxycodec.train import FitConfig
+
+        assert FitConfig().update_until == FitConfig().stage2_start == 0.5
+        assert FitConfig(stage2_start=0.3).update_until == 0.3
+        assert FitConfig(stage2_start=0.3, update_until=0.2).update_until == 0.2
+        c = FitConfig(stage2_start=0.4)
+        assert c.to_json()["update_until"] == 0.4 and FitConfig.from_json(c.to_json()) == c
+
+    def test_encode_config_validates_when_built(self):
+        from proxycodec.codec import EncodeConfig
+
+        for bad in ({"proxy_ratio": 0.0}, {"feature_bits": 17}, {"weights_dtype": "bf16"}, {"zstd_level": 0},
+                    {"leaf_sample": 1.5}, {"proxy_selection": "fps"}, {"cell_size": -1.0}):
+            with pytest.raises(ProxycodecError):
+                EncodeConfig(**bad)
+        assert EncodeConfig(feature_bits=32).feature_bits == 32
+
     def test_json_round_trip(self):
         from proxycodec.train import FitConfig
 
