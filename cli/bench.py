@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import click
 
-from .main import cli, user_errors
+from .common import user_errors
 
 
-@cli.command()
+@click.command()
 @click.argument("scene", type=click.Path(dir_okay=False))
 @click.argument("dataset", type=click.Path(file_okay=False))
 @click.option("-o", "--out", "out_dir", type=click.Path(file_okay=False), default=None,

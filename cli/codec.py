@@ -9,14 +9,14 @@ from pathlib import Path
 import click
 
 from ..errors import ProxycodecError
-from .main import cli, parse_resolutions, render_views, user_errors
+from .common import parse_resolutions, render_views, user_errors
 
 
 def _stderr(msg: str) -> None:
     click.echo(msg, err=True)
 
 
-@cli.command()
+@click.command()
 @click.argument("scene", type=click.Path(dir_okay=False))
 @click.option("-o", "--out", "out", type=click.Path(dir_okay=False), default=None,
               help="Output container (default: SCENE with suffix .pxc).")
@@ -100,7 +100,7 @@ def load_cameras(spec: str):
         raise ProxycodecError("each camera must be a JSON object", p) from None
 
 
-@cli.command()
+@click.command()
 @click.argument("container", type=click.Path(dir_okay=False))
 @click.option("--res", "res", default="1.0", show_default=True,
               help="Comma-separated resolution ratios in [0.025, 2.0].")
@@ -167,7 +167,7 @@ def _decode_lite(container):
         return None
 
 
-@cli.command()
+@click.command()
 @click.argument("file", type=click.Path(dir_okay=False))
 @click.option("--json", "as_json", is_flag=True, help="Everything as JSON (metadata included).")
 @user_errors

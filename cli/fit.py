@@ -8,7 +8,7 @@ from pathlib import Path
 
 import click
 
-from .main import cli, user_errors
+from .common import parse_resolutions, user_errors
 
 
 def _load_data(dataset: str, max_width: int | None, images: str, test_every: int, undistort: bool = True):
@@ -24,7 +24,7 @@ _no_undistort_option = click.option(
          "load time (SIMPLE_RADIAL, RADIAL, OPENCV, FULL_OPENCV).")
 
 
-@cli.command()
+@click.command()
 @click.argument("dataset", type=click.Path(file_okay=False))
 @click.option("-o", "--out", default="scene.ply", show_default=True, type=click.Path(dir_okay=False),
               help="Anchor PLY to write (weights go beside it as OUT.weights.pxc); with --explicit an INRIA 3DGS PLY.")
@@ -147,28 +147,7 @@ def _fit_explicit(dataset, out, iters, time_budget, max_width, seed, init_points
                f"{tr.elapsed:.0f} s, {Path(out).stat().st_size:,} B)")
 
 
-def _load_any(path):
-    """An anchor PLY (+ weights sidecar), an INRIA 3DGS PLY (``fit --explicit``, other 3DGS trainers: rendered as
-    plain 3DGS) or a proxycodec container (decoded: leaves regenerated)."""
-    from ..explicit import ExplicitModel, is_inria_ply
-    from ..formats.container import MAGIC
-    from ..model import SceneModel
-
-    try:
-        with open(path, "rb") as fh:
-            head = fh.read(len(MAGIC))
-    except OSError:
-        head = b""
-    if head == MAGIC:
-        from ..codec import decode
-
-        return decode(path)
-    if is_inria_ply(path):
-        return ExplicitModel.load(path)
-    return SceneModel.load(path)
-
-
-@cli.command("eval")
+@click.command("eval")
 @click.argument("scene", type=click.Path(dir_okay=False))
 @click.argument("dataset", type=click.Path(file_okay=False))
 @click.option("-o", "--out", "out_dir", type=click.Path(file_okay=False), default=None,
@@ -189,13 +168,13 @@ def eval_cmd(scene, dataset, out_dir, max_width, res, n_views, images, test_ever
              gate_mode) -> None:
     """Evaluate SCENE on DATASET's test views at many resolutions: PSNR/SSIM/time/Gaussians, JSON + markdown +
     plot + side-by-side crops."""
-    from ..bench import apply_gate_mode
     from ..errors import ProxycodecError
     from ..evaluate import EXTRA_RESOLUTIONS, MAIN_RESOLUTIONS, evaluate, report_markdown, write_report
     from ..explicit import ExplicitModel
-    from .main import parse_resolutions
+    from ..model import apply_gate_mode
+    from ..scenes import load_any
 
-    model = _load_any(scene)
+    model = load_any(scene)
     gate_used = apply_gate_mode(model, gate_mode)
     meta = model.meta
     fit_meta = meta.get("fit", {}) if isinstance(meta.get("fit"), dict) else {}

@@ -27,7 +27,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -37,7 +37,7 @@ from .errors import ProxycodecError
 from .fileio import atomic_write
 
 __all__ = [
-    "EvalSpec", "Runner", "apply_gate_mode", "encode_sweep_plan", "pareto_front", "run_encode_sweeps",
+    "EvalSpec", "Runner", "encode_sweep_plan", "pareto_front", "run_encode_sweeps",
     "write_report", "machine_info", "SPZ_TOOL",
 ]
 
@@ -47,24 +47,6 @@ RESULTS_VERSION = 1
 
 
 # ================================================================================================ small pieces
-def apply_gate_mode(model, mode: str) -> dict | None:
-    """Force the coverage gate of an anchor model on or off for rendering (``mode`` "on" / "off"), or leave the
-    model's own setting ("model"). Returns the gate configuration now in effect (None for a plain 3DGS model, which
-    has no gate). "on" uses the kappa / eta stored with the decoder, so a model trained with ``--no-gate`` is gated
-    post hoc with the values it would have been trained with."""
-    if mode not in ("model", "on", "off"):
-        raise ProxycodecError(f"gate mode must be model, on or off, got {mode!r}")
-    dec = getattr(model, "decoder", None)
-    if dec is None:
-        if mode != "model":
-            raise ProxycodecError("--gate applies to anchor scenes; a plain 3DGS PLY is rendered without a gate")
-        return None
-    if mode != "model":
-        cfg = dec.config
-        dec.config = replace(cfg, gate=replace(cfg.gate, enabled=(mode == "on")))
-    return dec.config.gate.to_json()
-
-
 def pareto_front(points: Sequence[dict], x: str = "bytes", y: str = "psnr_avg") -> list[int]:
     """Indices (ascending ``x``) of the points no other point dominates: none has ``x`` <= and ``y`` >= with at least
     one strict. Smaller ``x`` and larger ``y`` are better; points missing either value are ignored."""
@@ -215,21 +197,17 @@ def _step_encode(a: dict) -> dict:
             "content_key": _content_key(Path(a["out"]))}
 
 
-def _load_any(path: str):
-    from .cli.fit import _load_any as load
-
-    return load(path)
-
-
 def _step_eval(a: dict) -> dict:
     import torch
 
     from .evaluate import evaluate
     from .explicit import ExplicitModel
+    from .model import apply_gate_mode
+    from .scenes import load_any
 
     torch.set_num_threads(2)
     t0 = time.perf_counter()
-    model = _load_any(a["model"])
+    model = load_any(a["model"])
     load_s = time.perf_counter() - t0
     out: dict[str, Any] = {"load_seconds": load_s, "rss_after_load_mb": _rss_mb()}
     out["gate"] = apply_gate_mode(model, a.get("gate", "model"))

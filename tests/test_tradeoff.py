@@ -236,7 +236,7 @@ class TestGateSwitches:
         assert reps["on"]["summary"]["psnr_avg"] != reps["off"]["summary"]["psnr_avg"]
 
     def test_eval_gate_refuses_plain_3dgs(self, tiny, tmp_path):
-        from proxycodec.bench import apply_gate_mode
+        from proxycodec.model import apply_gate_mode
         from proxycodec.explicit import ExplicitModel
 
         assert apply_gate_mode(object(), "model") is None
