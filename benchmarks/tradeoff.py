@@ -121,6 +121,9 @@ def main(argv=None) -> int:
     sys.path.insert(0, str(REPO))
     from proxycodec import bench
     from proxycodec.bench import EvalSpec, Runner, encode_point, eval_step, make_point, run_encode_sweeps
+    from proxycodec.threads import set_threads
+
+    set_threads()  # $PROXYCODEC_THREADS, else the usable cores; the step workers inherit the count
 
     names = [s.strip() for s in args.scenes.split(",")] if args.scenes else (["lego"] if args.quick else list(SCENES))
     for n in names:

@@ -130,8 +130,6 @@ def fit(dataset, out, iters, time_budget, max_width, seed, no_gate, embedding, f
 def _fit_explicit(dataset, out, iters, time_budget, max_width, seed, init_points, images, test_every, undistort,
                   resume, backend, sh_degree) -> None:
     """``fit --explicit``: the plain 3DGS baseline (``proxycodec.explicit``)."""
-    import torch
-
     from ..errors import ProxycodecError
     from ..explicit import ExplicitConfig, run_explicit
 
@@ -140,7 +138,6 @@ def _fit_explicit(dataset, out, iters, time_budget, max_width, seed, init_points
     kw = {} if init_points is None else {"init_points": init_points}
     cfg = ExplicitConfig(iters=iters, time_budget=time_budget, seed=seed, max_width=max_width, sh_degree=sh_degree,
                          backend=backend, **kw)
-    torch.set_num_threads(2)
     data = _load_data(dataset, max_width, images, test_every, undistort)
     tr = run_explicit(data, cfg, lambda s: click.echo(s, err=True), out=out)
     click.echo(f"wrote {out} ({tr.num_gaussians} Gaussians, SH degree {sh_degree}, {tr.iteration} iterations, "

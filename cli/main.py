@@ -9,6 +9,8 @@ from __future__ import annotations
 import click
 
 from .. import __version__
+from ..threads import ENV as THREADS_ENV
+from ..threads import set_threads
 from .bench import bench
 from .codec import decode, encode, stats
 from .commands import demo, render, sample
@@ -17,9 +19,12 @@ from .fit import eval_cmd, fit
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(__version__, prog_name="proxycodec")
-def cli() -> None:
+@click.option("--threads", type=click.IntRange(min=1), default=None, envvar=THREADS_ENV, show_envvar=True,
+              help="Threads for the CPU work of torch [default: the cores this process may run on].")
+def cli(threads: int | None) -> None:
     """proxycodec: compress anchor-based 3D Gaussian Splatting scenes to compact proxy anchors and render them
     at any resolution."""
+    set_threads(threads)
 
 
 for _command in (sample, render, demo, encode, decode, stats, fit, eval_cmd, bench):

@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from ..fileio import atomic_write
+from ..threads import set_threads
 from .steps import load_avg, run_worker
 
 RESULTS = "results.json"
@@ -168,6 +169,7 @@ def _json_default(o):
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if len(argv) == 3 and argv[0] == "--worker":
+        set_threads()  # the count the parent chose reaches this process through the environment
         print(json.dumps(run_worker(argv[1], json.loads(argv[2])), default=_json_default))
         return 0
     print("usage: python -m proxycodec.bench --worker KIND JSON (internal; see `proxycodec bench`)", file=sys.stderr)

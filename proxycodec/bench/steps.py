@@ -61,12 +61,8 @@ def _step_fit(a: dict) -> dict:
 
 
 def _step_explicit(a: dict) -> dict:
-    import torch
-
     from ..explicit import ExplicitConfig, run_explicit
     from ..formats.datasets import load_dataset
-
-    torch.set_num_threads(2)
 
     data = load_dataset(a["dataset"], max_width=a["max_width"], test_every=a.get("test_every", 8))
     cfg = ExplicitConfig(**{**a["config"], "max_width": a["max_width"]})
@@ -106,14 +102,11 @@ def _step_encode(a: dict) -> dict:
 
 
 def _step_eval(a: dict) -> dict:
-    import torch
-
     from ..evaluate import evaluate
     from ..explicit import ExplicitModel
     from ..model import apply_gate_mode
     from ..scenes import load_any
 
-    torch.set_num_threads(2)
     t0 = time.perf_counter()
     model = load_any(a["model"])
     load_s = time.perf_counter() - t0
