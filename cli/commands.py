@@ -8,7 +8,7 @@ from pathlib import Path
 
 import click
 
-from .common import parse_resolutions, render_views, user_errors
+from .common import config_option, parse_resolutions, render_views, user_errors
 
 
 @click.command()
@@ -45,7 +45,8 @@ def render(scene: str, res: str, out_dir: str, views: tuple[int, ...], backend: 
 @click.option("-o", "--out", "out_dir", type=click.Path(file_okay=False), default="proxycodec-demo", show_default=True)
 @click.option("--res", "res", default="1.0,0.3,0.1", show_default=True, help="Resolution ratios to render.")
 @click.option("--backend", default="auto", show_default=True, type=click.Choice(["auto", "reference", "cpu", "cuda"]))
-@click.option("--predictor-iters", default=2000, show_default=True, type=int, help="Predictor fitting iterations.")
+@config_option("proxycodec.codec:EncodeConfig", "--predictor-iters", show_default=True, type=int,
+               help="Predictor fitting iterations.")
 @user_errors
 def demo(out_dir: str, res: str, backend: str, predictor_iters: int) -> None:
     """Run the whole pipeline on the built-in scene: build and save it, encode it to a proxy-anchor container,

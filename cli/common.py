@@ -1,8 +1,9 @@
-"""What the commands share: one-line user errors, option parsing, writing rendered views."""
+"""What the commands share: one-line user errors, option parsing, config defaults, writing rendered views."""
 
 from __future__ import annotations
 
 import functools
+import importlib
 import sys
 import time
 from pathlib import Path
@@ -42,6 +43,29 @@ def parse_resolutions(text: str) -> list[float]:
     if not vals:
         raise ProxycodecError("--res is empty")
     return [check_xi(v) for v in vals]
+
+
+class ConfigDefault(click.Option):
+    """An option whose default is a field of a configuration dataclass (``config``: "module:Class"; ``field``: the
+    option's name unless given; ``convert``: field value -> option value). The class is imported when click first
+    needs the default (the command's ``--help`` or a run), so building the command line imports no torch."""
+
+    def __init__(self, *args, config: str, field: str | None = None, convert=None, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.config, self.field, self.convert = config, field or self.name, convert
+
+    def get_default(self, ctx, call=True):
+        value = ctx.lookup_default(self.name, call=call)
+        if value is not None:
+            return value
+        module, _, name = self.config.partition(":")
+        value = getattr(importlib.import_module(module), name).__dataclass_fields__[self.field].default
+        return value if self.convert is None else self.convert(value)
+
+
+def config_option(config: str, *param_decls: str, field: str | None = None, convert=None, **attrs):
+    """``click.option`` with its default from ``config``'s field (:class:`ConfigDefault`); give ``type``."""
+    return click.option(*param_decls, cls=ConfigDefault, config=config, field=field, convert=convert, **attrs)
 
 
 def render_views(model, resolutions, out_dir: Path, views, backend: str, prefix: str = "") -> list[dict]:

@@ -115,3 +115,12 @@ print(r.exit_code, torch.get_num_threads(), os.environ["PROXYCODEC_THREADS"])
         assert r.stdout.split()[-3:] == want.split()
     r = CliRunner().invoke(cli, ["--threads", "0", "stats", missing])
     assert r.exit_code == 2 and "--threads" in r.output
+
+
+def test_fit_explicit_shares_the_anchor_fit_defaults():
+    """``fit`` takes the defaults of the options it shares with ``--explicit`` from FitConfig alone."""
+    from proxycodec.explicit import ExplicitConfig
+    from proxycodec.train import FitConfig
+
+    for name in ("max_width", "seed", "backend"):
+        assert getattr(FitConfig(), name) == getattr(ExplicitConfig(), name), name
