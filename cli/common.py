@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import importlib
 import sys
@@ -59,7 +60,8 @@ class ConfigDefault(click.Option):
         if value is not None:
             return value
         module, _, name = self.config.partition(":")
-        value = getattr(importlib.import_module(module), name).__dataclass_fields__[self.field].default
+        f = getattr(importlib.import_module(module), name).__dataclass_fields__[self.field]
+        value = f.default if f.default is not dataclasses.MISSING else f.default_factory()
         return value if self.convert is None else self.convert(value)
 
 
