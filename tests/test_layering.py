@@ -176,6 +176,9 @@ def graph() -> dict[str, set[str]]:
 
 
 def test_the_walk_sees_every_layer(graph):
+    tomllib = pytest.importorskip("tomllib")
+    with open(REPO_ROOT / "pyproject.toml", "rb") as fh:
+        assert tomllib.load(fh)["tool"]["setuptools"]["package-dir"] == PACKAGE_DIRS
     for m in ("proxycodec", "proxycodec.model", "proxycodec.formats.container", "proxycodec.cli.main",
               "proxycodec.render.project"):
         assert m in graph, m
