@@ -63,7 +63,6 @@ def run_case(case: dict) -> dict:
     import numpy as np
     import torch
 
-    torch.set_num_threads(2)
     from proxycodec.render import project, project_gaussians, rasterize, resolve_backend
 
     backend, n, size, xi, repeats = case["backend"], case["n"], case["size"], case["xi"], case["repeats"]
@@ -171,6 +170,9 @@ def main(argv=None) -> int:
     ap.add_argument("--timeout", type=float, default=900.0, help="seconds per case")
     ap.add_argument("--worker", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
+    from proxycodec.threads import set_threads
+
+    threads = set_threads()  # $PROXYCODEC_THREADS, else the usable cores; the case workers inherit the count
     if args.worker:
         print(json.dumps(run_case(json.loads(args.worker))))
         return 0
@@ -193,7 +195,7 @@ def main(argv=None) -> int:
     for c in cases:
         c.update(seed=args.seed, repeats=repeats if c["backend"] == "cpu" else max(2, repeats // 3))
 
-    meta = {"cpu_count": os.cpu_count(), "torch_threads": 2, "seed": args.seed, "repeats": repeats,
+    meta = {"cpu_count": os.cpu_count(), "torch_threads": threads, "seed": args.seed, "repeats": repeats,
             "loadavg_start": os.getloadavg(), "versions": versions(), "background": BACKGROUND,
             "timer": "time.perf_counter wall clock; medians and minima over repeats after one warm-up"}
     print(f"cpus {meta['cpu_count']}, load average at start {meta['loadavg_start']}, seed {args.seed}, "

@@ -79,7 +79,7 @@ ABLATIONS = [
     ("gate kappa 4, eta 0.5", {"gate_eta": 0.5}, "model", "[S Table 11] NeRF-Syn 29.271 vs 31.056", 29.271 - 31.056),
     ("gate kappa 5, eta 0.25", {"gate_kappa": 5.0}, "model", "[S Table 11] NeRF-Syn 31.002 vs 31.056",
      31.002 - 31.056),
-    # ours, beside the paper's: the stage-2 options of SPEC section 5 (issue #4's proxies' cost)
+    # ours, beside the paper's: the stage-2 options of SPEC section 5
     ("proxy selection spread (ours; the paper draws at random)", {"proxy_selection": "spread"}, "model",
      "[S 7.3] the paper draws proxies at random only", None),
     ("predictor context 4 proxies (ours; the paper's sees 1)", {"predictor_context": 4}, "model",
@@ -121,6 +121,9 @@ def main(argv=None) -> int:
     sys.path.insert(0, str(REPO))
     from proxycodec import bench
     from proxycodec.bench import EvalSpec, Runner, encode_point, eval_step, make_point, run_encode_sweeps
+    from proxycodec.threads import set_threads
+
+    set_threads()  # $PROXYCODEC_THREADS, else the usable cores; the step workers inherit the count
 
     names = [s.strip() for s in args.scenes.split(",")] if args.scenes else (["lego"] if args.quick else list(SCENES))
     for n in names:
@@ -145,7 +148,7 @@ def main(argv=None) -> int:
     if args.ablation_iters:
         ab_spec["iters"] = args.ablation_iters
     est = sum(sum(sp["budgets"]) + 2 * sp["budgets"][-1] for sp in specs.values())
-    # ~20 iterations/s at 200 px on the 2-core machine (measured: 4000 in 180-200 s), scaling with the pixel count
+    # a rough rate of 20 iterations/s at 200 px, scaling with the pixel count
     ab_fit_s = ab_spec["iters"] / 20.0 * (ab_spec["max_width"] / 200.0) ** 2
     est += sum(ab_fit_s * (1 + len({tuple(sorted(a[1].items())) for a in ablations}) + len(noise_seeds))
                for n in ab_scenes)

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import click
 
-from .main import cli, user_errors
+from .common import config_option, user_errors
 
 
-@cli.command()
+@click.command()
 @click.argument("scene", type=click.Path(dir_okay=False))
 @click.argument("dataset", type=click.Path(file_okay=False))
 @click.option("-o", "--out", "out_dir", type=click.Path(file_okay=False), default=None,
@@ -25,7 +25,8 @@ from .main import cli, user_errors
 @click.option("--fresh", is_flag=True, help="Ignore the results of an earlier run in the folder (default: resume).")
 @click.option("--predictor-iters", type=int, default=None,
               help="Encode-time predictor iterations at every point [default: encode's default, 2000].")
-@click.option("--seed", type=int, default=0, show_default=True, help="Encode seed (proxy selection, predictor).")
+@config_option("proxycodec.codec:EncodeConfig", "--seed", type=int, show_default=True,
+               help="Encode seed (proxy selection, predictor).")
 @click.option("--backend", default="auto", show_default=True, type=click.Choice(["auto", "reference", "cpu", "cuda"]))
 @user_errors
 def bench(scene, dataset, out_dir, quick, views, max_width, test_every, sweeps, in_process, fresh, predictor_iters,

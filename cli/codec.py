@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import json
 import time
 from pathlib import Path
@@ -9,41 +10,44 @@ from pathlib import Path
 import click
 
 from ..errors import ProxycodecError
-from .main import cli, parse_resolutions, render_views, user_errors
+from .common import config_option, parse_resolutions, render_views, user_errors
+
+#: An option whose default is ``EncodeConfig``'s field of the same name.
+encode_option = functools.partial(config_option, "proxycodec.codec:EncodeConfig")
 
 
 def _stderr(msg: str) -> None:
     click.echo(msg, err=True)
 
 
-@cli.command()
+@click.command()
 @click.argument("scene", type=click.Path(dir_okay=False))
 @click.option("-o", "--out", "out", type=click.Path(dir_okay=False), default=None,
               help="Output container (default: SCENE with suffix .pxc).")
 @click.option("--weights", type=click.Path(dir_okay=False), default=None,
               help="Decoder weights (default: SCENE.weights.pxc beside the PLY).")
-@click.option("--proxy-ratio", default=0.3, show_default=True, type=float, help="rho: share of proxies per cell.")
-@click.option("--proxy-selection", type=click.Choice(["random", "spread"]), default="random", show_default=True,
-              help="Proxies per cell at random (the paper's) or spread out (greedy k-median), when not as fitted.")
-@click.option("--cell-size", default=None, type=float,
-              help="Proxy-selection cell size in world units (default: a voxel multiple giving ~10 anchors/cell).")
-@click.option("--feature-bits", default=8, show_default=True, type=int, help="Proxy features (1-16, 32 = float).")
-@click.option("--offset-bits", default=8, show_default=True, type=int, help="Offsets (1-16, 32 = float).")
-@click.option("--scaling-bits", default=8, show_default=True, type=int, help="Scalings (1-16, 32 = float).")
-@click.option("--weights-dtype", default="q8", show_default=True, type=click.Choice(["f16", "f32", "q8"]),
-              help="MLP weights precision (q8: int8 matrices with per-row scales).")
-@click.option("--max-cameras", default=16, show_default=True, type=int,
-              help="Default cameras kept in the container (evenly spaced).")
-@click.option("--predict-offsets/--store-offsets", default=None,
-              help="Predict leaf offsets too instead of storing them [default: as the scene's stage-2 predictor "
-                   "(fit --predict-offsets), else store].")
-@click.option("--drop-dead-offsets/--keep-dead-offsets", default=False, show_default=True,
-              help="Store the offsets of neural Gaussians that are never drawn as 0 (-1.5% bytes, ~9x encode time).")
-@click.option("--predictor-iters", default=2000, show_default=True, type=int)
-@click.option("--leaf-sample", default=0.2, show_default=True, type=float,
-              help="Fraction of the leaves in each predictor iteration (L_recon).")
-@click.option("--zstd-level", default=19, show_default=True, type=int)
-@click.option("--seed", default=0, show_default=True, type=int)
+@encode_option("--proxy-ratio", show_default=True, type=float, help="rho: share of proxies per cell.")
+@encode_option("--proxy-selection", type=click.Choice(["random", "spread"]), show_default=True,
+               help="Proxies per cell at random (the paper's) or spread out (greedy k-median), when not as fitted.")
+@encode_option("--cell-size", type=float,
+               help="Proxy-selection cell size in world units (default: a voxel multiple giving ~10 anchors/cell).")
+@encode_option("--feature-bits", show_default=True, type=int, help="Proxy features (1-16, 32 = float).")
+@encode_option("--offset-bits", show_default=True, type=int, help="Offsets (1-16, 32 = float).")
+@encode_option("--scaling-bits", show_default=True, type=int, help="Scalings (1-16, 32 = float).")
+@encode_option("--weights-dtype", show_default=True, type=click.Choice(["f16", "f32", "q8"]),
+               help="MLP weights precision (q8: int8 matrices with per-row scales).")
+@encode_option("--max-cameras", show_default=True, type=int,
+               help="Default cameras kept in the container (evenly spaced).")
+@encode_option("--predict-offsets/--store-offsets",
+               help="Predict leaf offsets too instead of storing them [default: as the scene's stage-2 predictor "
+                    "(fit --predict-offsets), else store].")
+@encode_option("--drop-dead-offsets/--keep-dead-offsets", show_default=True,
+               help="Store the offsets of neural Gaussians that are never drawn as 0 (-1.5% bytes, ~9x encode time).")
+@encode_option("--predictor-iters", show_default=True, type=int)
+@encode_option("--leaf-sample", show_default=True, type=float,
+               help="Fraction of the leaves in each predictor iteration (L_recon).")
+@encode_option("--zstd-level", show_default=True, type=int)
+@encode_option("--seed", show_default=True, type=int)
 @click.option("--refit-predictor", is_flag=True,
               help="Ignore a stage-2 predictor/proxy split stored by `fit`; select proxies and fit anew.")
 @click.option("--json", "as_json", is_flag=True, help="Print the encode report as JSON on stdout.")
@@ -100,7 +104,7 @@ def load_cameras(spec: str):
         raise ProxycodecError("each camera must be a JSON object", p) from None
 
 
-@cli.command()
+@click.command()
 @click.argument("container", type=click.Path(dir_okay=False))
 @click.option("--res", "res", default="1.0", show_default=True,
               help="Comma-separated resolution ratios in [0.025, 2.0].")
@@ -167,7 +171,7 @@ def _decode_lite(container):
         return None
 
 
-@cli.command()
+@click.command()
 @click.argument("file", type=click.Path(dir_okay=False))
 @click.option("--json", "as_json", is_flag=True, help="Everything as JSON (metadata included).")
 @user_errors

@@ -1,4 +1,4 @@
-"""Commands beyond the basics; each registers on the ``cli`` group."""
+"""``sample``, ``render`` and ``demo``: the built-in scene, rendering an anchor scene, the whole pipeline."""
 
 from __future__ import annotations
 
@@ -8,14 +8,45 @@ from pathlib import Path
 
 import click
 
-from .main import cli, parse_resolutions, render_views, user_errors
+from .common import config_option, parse_resolutions, render_views, user_errors
 
 
-@cli.command()
+@click.command()
+@click.argument("out", type=click.Path(dir_okay=False), default="sample.ply")
+@click.option("--seed", default=0, show_default=True, help="Seed of the procedural scene.")
+@user_errors
+def sample(out: str, seed: int) -> None:
+    """Write the built-in procedural scene as an anchor PLY (weights beside it as OUT.weights.pxc)."""
+    from ..sample import sample_model
+
+    model = sample_model(seed)
+    ply, weights = model.save(out)
+    click.echo(f"wrote {ply} ({model.scene.num_anchors} anchors) and {weights}")
+
+
+@click.command()
+@click.argument("scene", type=click.Path(dir_okay=False))
+@click.option("--res", "res", default="1.0,0.5,0.25,0.1", show_default=True,
+              help="Comma-separated resolution ratios in [0.025, 2.0].")
+@click.option("-o", "--out", "out_dir", type=click.Path(file_okay=False), default="renders", show_default=True)
+@click.option("--view", "views", multiple=True, type=int, help="Camera index (repeatable; default: all stored).")
+@click.option("--backend", default="auto", show_default=True,
+              type=click.Choice(["auto", "reference", "cpu", "cuda"]), help="Compositing backend.")
+@user_errors
+def render(scene: str, res: str, out_dir: str, views: tuple[int, ...], backend: str) -> None:
+    """Render an anchor scene (PLY + weights) at the given resolutions to PNG files."""
+    from ..model import SceneModel
+
+    model = SceneModel.load(scene)
+    render_views(model, parse_resolutions(res), Path(out_dir), list(views) or None, backend)
+
+
+@click.command()
 @click.option("-o", "--out", "out_dir", type=click.Path(file_okay=False), default="proxycodec-demo", show_default=True)
 @click.option("--res", "res", default="1.0,0.3,0.1", show_default=True, help="Resolution ratios to render.")
 @click.option("--backend", default="auto", show_default=True, type=click.Choice(["auto", "reference", "cpu", "cuda"]))
-@click.option("--predictor-iters", default=2000, show_default=True, type=int, help="Predictor fitting iterations.")
+@config_option("proxycodec.codec:EncodeConfig", "--predictor-iters", show_default=True, type=int,
+               help="Predictor fitting iterations.")
 @user_errors
 def demo(out_dir: str, res: str, backend: str, predictor_iters: int) -> None:
     """Run the whole pipeline on the built-in scene: build and save it, encode it to a proxy-anchor container,
@@ -60,7 +91,3 @@ def demo(out_dir: str, res: str, backend: str, predictor_iters: int) -> None:
     (out / "demo.json").write_text(json.dumps({"encode": report.to_json(), "original": rows, "decoded": rows_d},
                                               indent=2))
     click.echo(f"contact sheet (rows: original, decoded per view) -> {sheet}")
-
-
-from . import codec  # noqa
-from . import fit  # noqa

@@ -2,13 +2,18 @@
 
 from __future__ import annotations
 
+import functools
 import json
 import sys
 from pathlib import Path
 
 import click
 
-from .main import cli, user_errors
+from .common import config_option, parse_resolutions, user_errors
+
+#: Options whose default is the field of the same name of ``FitConfig`` (``ExplicitConfig``: ``--explicit`` only).
+fit_option = functools.partial(config_option, "proxycodec.train:FitConfig")
+explicit_option = functools.partial(config_option, "proxycodec.explicit:ExplicitConfig")
 
 
 def _load_data(dataset: str, max_width: int | None, images: str, test_every: int, undistort: bool = True):
@@ -24,51 +29,54 @@ _no_undistort_option = click.option(
          "load time (SIMPLE_RADIAL, RADIAL, OPENCV, FULL_OPENCV).")
 
 
-@cli.command()
+# The options --explicit shares with the anchor fit (--max-width, --seed, --backend) take FitConfig's defaults (a test
+# holds ExplicitConfig's equal). The run length (--iters, --time-budget) and --init-points deliberately have none:
+# left out, each config's own applies (--time-budget alone: no iteration limit).
+@click.command()
 @click.argument("dataset", type=click.Path(file_okay=False))
 @click.option("-o", "--out", default="scene.ply", show_default=True, type=click.Path(dir_okay=False),
               help="Anchor PLY to write (weights go beside it as OUT.weights.pxc); with --explicit an INRIA 3DGS PLY.")
 @click.option("--iters", type=int, default=None, help="Training iterations [default: 3000 without --time-budget].")
 @click.option("--time-budget", type=float, default=None, help="Seconds of training; schedules follow elapsed time.")
-@click.option("--max-width", type=int, default=1600, show_default=True,
-              help="100% reference width (3DGS rule: wider images are downscaled to it).")
-@click.option("--seed", type=int, default=0, show_default=True)
+@fit_option("--max-width", type=int, show_default=True,
+            help="100% reference width (3DGS rule: wider images are downscaled to it).")
+@fit_option("--seed", type=int, show_default=True)
 @click.option("--no-gate", is_flag=True, help="Ablation: no pixel coverage gate.")
-@click.option("--embedding", type=click.Choice(["film", "additive", "none"]), default="film", show_default=True,
-              help="Resolution embedding of the anchor features.")
+@fit_option("--embedding", type=click.Choice(["film", "additive", "none"]), show_default=True,
+            help="Resolution embedding of the anchor features.")
 @click.option("--fixed-res", is_flag=True, help="Ablation: train at 100% only (no random resolution).")
 @click.option("--no-proxies", is_flag=True, help="Ablation: Scaffold-GS only (no proxy anchors / predictor).")
-@click.option("--proxy-ratio", type=float, default=0.3, show_default=True, help="Stage 2: rho, share of proxies per cell.")
-@click.option("--proxy-selection", type=click.Choice(["random", "spread"]), default="random", show_default=True,
-              help="Stage 2: how each cell's proxies are picked: at random (the paper's) or spread out over the cell "
-                   "(greedy k-median: leaves closer to their proxies).")
-@click.option("--predictor-hidden", type=int, default=64, show_default=True, help="Stage 2: residual predictor width.")
-@click.option("--predictor-blocks", type=int, default=2, show_default=True,
-              help="Stage 2: residual predictor depth (residual blocks).")
-@click.option("--predictor-warmup", type=int, default=300, show_default=True,
-              help="Stage 2: L_recon-only predictor iterations at the stage switch.")
-@click.option("--predictor-context", type=int, default=1, show_default=True,
-              help="Stage 2: proxies the residual predictor sees per leaf (1: the nearest, as in the paper; more: the "
-                   "next nearest as context).")
-@click.option("--predict-offsets/--store-offsets", default=False, show_default=True,
-              help="Stage 2: the predictor regenerates the leaves' offsets too (rendered with them, so the container "
-                   "stores proxy offsets only).")
-@click.option("--stage2-start", type=click.FloatRange(0.05, 1.0), default=0.5, show_default=True,
-              help="Fraction of the run at which the anchor set freezes and stage 2 (proxies) begins.")
-@click.option("--recon-loss", type=click.Choice(["mse+cos", "mse", "l1"]), default="mse+cos", show_default=True,
-              help="Ablation: L_recon of the leaf predictor (supplement Table 6).")
-@click.option("--lambda-recon", "lambda_recon", default="0", show_default=True,
-              help="Weight of L_recon in joint stage 2 (after the predictor warm-up): a constant, or 'paper' for "
-                   "0.1 then 0.01 from 2/3 of the run (supplement Table 10). 0 measured best on lego (SPEC.md 5).")
-@click.option("--predictor", "predictor_kind", type=click.Choice(["residual", "proxy-leaf-mlp"]), default="residual",
-              show_default=True, help="Ablation: leaf predictor; proxy-leaf-mlp is the supplement's Proxy&Leaf (MLP) "
-                                      "baseline (Table 5), fit/eval only (encode refits a residual predictor).")
-@click.option("--gate-kappa", type=float, default=4.0, show_default=True,
-              help="Coverage gate slope kappa (training and rendering; stored with the decoder).")
-@click.option("--gate-eta", type=float, default=0.25, show_default=True,
-              help="Coverage gate threshold eta in pixels^2 (training and rendering; stored with the decoder).")
-@click.option("--voxel-size", type=float, default=0.0, show_default=True,
-              help="Anchor voxel size; <= 0: scene extent / 128.")
+@fit_option("--proxy-ratio", type=float, show_default=True, help="Stage 2: rho, share of proxies per cell.")
+@fit_option("--proxy-selection", type=click.Choice(["random", "spread"]), show_default=True,
+            help="Stage 2: how each cell's proxies are picked: at random (the paper's) or spread out over the cell "
+                 "(greedy k-median: leaves closer to their proxies).")
+@fit_option("--predictor-hidden", type=int, show_default=True, help="Stage 2: residual predictor width.")
+@fit_option("--predictor-blocks", type=int, show_default=True,
+            help="Stage 2: residual predictor depth (residual blocks).")
+@fit_option("--predictor-warmup", type=int, show_default=True,
+            help="Stage 2: L_recon-only predictor iterations at the stage switch.")
+@fit_option("--predictor-context", type=int, show_default=True,
+            help="Stage 2: proxies the residual predictor sees per leaf (1: the nearest, as in the paper; more: the "
+                 "next nearest as context).")
+@fit_option("--predict-offsets/--store-offsets", show_default=True,
+            help="Stage 2: the predictor regenerates the leaves' offsets too (rendered with them, so the container "
+                 "stores proxy offsets only).")
+@fit_option("--stage2-start", type=click.FloatRange(0.05, 1.0), show_default=True,
+            help="Fraction of the run at which the anchor set freezes and stage 2 (proxies) begins.")
+@fit_option("--recon-loss", type=click.Choice(["mse+cos", "mse", "l1"]), show_default=True,
+            help="Ablation: L_recon of the leaf predictor (supplement Table 6).")
+@fit_option("--lambda-recon", "lambda_recon", field="lambda_recon_fixed", type=str, show_default=True,
+            convert=lambda v: "paper" if v is None else f"{v:g}",
+            help="Weight of L_recon in joint stage 2 (after the predictor warm-up): a constant, or 'paper' for "
+                 "0.1 then 0.01 from 2/3 of the run (supplement Table 10). 0 measured best on lego (SPEC.md 5).")
+@fit_option("--predictor", "predictor_kind", field="predictor", type=click.Choice(["residual", "proxy-leaf-mlp"]),
+            show_default=True, help="Ablation: leaf predictor; proxy-leaf-mlp is the supplement's Proxy&Leaf (MLP) "
+                                    "baseline (Table 5), fit/eval only (encode refits a residual predictor).")
+@fit_option("--gate-kappa", type=float, show_default=True,
+            help="Coverage gate slope kappa (training and rendering; stored with the decoder).")
+@fit_option("--gate-eta", type=float, show_default=True,
+            help="Coverage gate threshold eta in pixels^2 (training and rendering; stored with the decoder).")
+@fit_option("--voxel-size", type=float, show_default=True, help="Anchor voxel size; <= 0: scene extent / 128.")
 @click.option("--init-points", type=int, default=None,
               help="Random initial points when the dataset has no SfM points (Blender) "
                    "[default: 5000; 10000 with --explicit].")
@@ -76,15 +84,15 @@ _no_undistort_option = click.option(
 @click.option("--test-every", type=int, default=8, show_default=True, help="COLMAP: every N-th image is a test view.")
 @_no_undistort_option
 @click.option("--resume", is_flag=True, help="Continue from OUT's checkpoint (OUT.ckpt.pxc).")
-@click.option("--checkpoint-every", type=float, default=300.0, show_default=True, help="Seconds between checkpoints.")
+@fit_option("--checkpoint-every", type=float, show_default=True, help="Seconds between checkpoints.")
 @click.option("--keep-checkpoint", is_flag=True, help="Keep the checkpoint after a successful run.")
-@click.option("--backend", default="auto", show_default=True, type=click.Choice(["auto", "reference", "cpu", "cuda"]))
+@fit_option("--backend", show_default=True, type=click.Choice(["auto", "reference", "cpu", "cuda"]))
 @click.option("--explicit", is_flag=True,
               help="Baseline: train plain 3DGS (explicit Gaussians, SH colours, clone/split/prune, no gate, 100% "
                    "resolution) with the same data, budget and rasterizer, and write OUT as an INRIA 3DGS PLY "
                    "only (no weights). Anchor-only options do not apply.")
-@click.option("--sh-degree", type=click.IntRange(0, 3), default=1, show_default=True,
-              help="With --explicit: spherical-harmonics degree of the Gaussians' colours.")
+@explicit_option("--sh-degree", type=click.IntRange(0, 3), show_default=True,
+                 help="With --explicit: spherical-harmonics degree of the Gaussians' colours.")
 @user_errors
 def fit(dataset, out, iters, time_budget, max_width, seed, no_gate, embedding, fixed_res, no_proxies, proxy_ratio,
         proxy_selection, predictor_hidden, predictor_blocks, predictor_warmup, predictor_context, predict_offsets, stage2_start, recon_loss,
@@ -95,14 +103,14 @@ def fit(dataset, out, iters, time_budget, max_width, seed, no_gate, embedding, f
     from ..train import FitConfig
     from ..train import fit as run_fit
 
-    if iters is None and time_budget is None:
-        iters = 3000
+    # only what was given: otherwise the config's own run length and initial points
+    run = {} if iters is None and time_budget is None else {"iters": iters, "time_budget": time_budget}
+    if init_points is not None:
+        run["init_points"] = init_points
     if explicit:
-        _fit_explicit(dataset, out, iters, time_budget, max_width, seed, init_points, images, test_every,
-                      not no_undistort, resume, backend, sh_degree)
+        _fit_explicit(dataset, out, run, max_width, seed, images, test_every, not no_undistort, resume, backend,
+                      sh_degree)
         return
-    if init_points is None:
-        init_points = 5_000
     if lambda_recon.strip().lower() == "paper":
         lambda_recon_fixed = None
     else:
@@ -111,15 +119,13 @@ def fit(dataset, out, iters, time_budget, max_width, seed, no_gate, embedding, f
         except ValueError:
             raise click.BadParameter(f"expected a number or 'paper', got {lambda_recon!r}",
                                      param_hint="--lambda-recon") from None
-    cfg = FitConfig(iters=iters, time_budget=time_budget, seed=seed, max_width=max_width, gate=not no_gate,
-                    embedding=embedding, fixed_res=fixed_res, proxies=not no_proxies, voxel_size=voxel_size,
-                    init_points=init_points, checkpoint_every=checkpoint_every, backend=backend,
+    cfg = FitConfig(seed=seed, max_width=max_width, gate=not no_gate, embedding=embedding, fixed_res=fixed_res,
+                    proxies=not no_proxies, voxel_size=voxel_size, checkpoint_every=checkpoint_every, backend=backend,
                     recon_loss=recon_loss, lambda_recon_fixed=lambda_recon_fixed, predictor=predictor_kind,
                     gate_kappa=gate_kappa, gate_eta=gate_eta, proxy_ratio=proxy_ratio, proxy_selection=proxy_selection,
                     predictor_hidden=predictor_hidden, predictor_blocks=predictor_blocks,
                     predictor_warmup=predictor_warmup, predictor_context=predictor_context,
-                    predict_offsets=predict_offsets,
-                    stage2_start=stage2_start, update_until=stage2_start)
+                    predict_offsets=predict_offsets, stage2_start=stage2_start, **run)
     data = _load_data(dataset, max_width, images, test_every, not no_undistort)
     res = run_fit(data, out, cfg, dataset_root=str(Path(dataset).resolve()), resume=resume,
                   keep_checkpoint=keep_checkpoint)
@@ -127,48 +133,23 @@ def fit(dataset, out, iters, time_budget, max_width, seed, no_gate, embedding, f
                f"{res.seconds:.0f} s)")
 
 
-def _fit_explicit(dataset, out, iters, time_budget, max_width, seed, init_points, images, test_every, undistort,
-                  resume, backend, sh_degree) -> None:
-    """``fit --explicit``: the plain 3DGS baseline (``proxycodec.explicit``)."""
-    import torch
-
+def _fit_explicit(dataset, out, run: dict, max_width, seed, images, test_every, undistort, resume, backend,
+                  sh_degree) -> None:
+    """``fit --explicit``: the plain 3DGS baseline (``proxycodec.explicit``); ``run``: run length and init points
+    where given."""
     from ..errors import ProxycodecError
     from ..explicit import ExplicitConfig, run_explicit
 
     if resume:
         raise ProxycodecError("--resume is not supported with --explicit (the baseline keeps no checkpoints)")
-    kw = {} if init_points is None else {"init_points": init_points}
-    cfg = ExplicitConfig(iters=iters, time_budget=time_budget, seed=seed, max_width=max_width, sh_degree=sh_degree,
-                         backend=backend, **kw)
-    torch.set_num_threads(2)
+    cfg = ExplicitConfig(seed=seed, max_width=max_width, sh_degree=sh_degree, backend=backend, **run)
     data = _load_data(dataset, max_width, images, test_every, undistort)
     tr = run_explicit(data, cfg, lambda s: click.echo(s, err=True), out=out)
     click.echo(f"wrote {out} ({tr.num_gaussians} Gaussians, SH degree {sh_degree}, {tr.iteration} iterations, "
                f"{tr.elapsed:.0f} s, {Path(out).stat().st_size:,} B)")
 
 
-def _load_any(path):
-    """An anchor PLY (+ weights sidecar), an INRIA 3DGS PLY (``fit --explicit``, other 3DGS trainers: rendered as
-    plain 3DGS) or a proxycodec container (decoded: leaves regenerated)."""
-    from ..explicit import ExplicitModel, is_inria_ply
-    from ..formats.container import MAGIC
-    from ..model import SceneModel
-
-    try:
-        with open(path, "rb") as fh:
-            head = fh.read(len(MAGIC))
-    except OSError:
-        head = b""
-    if head == MAGIC:
-        from ..codec import decode
-
-        return decode(path)
-    if is_inria_ply(path):
-        return ExplicitModel.load(path)
-    return SceneModel.load(path)
-
-
-@cli.command("eval")
+@click.command("eval")
 @click.argument("scene", type=click.Path(dir_okay=False))
 @click.argument("dataset", type=click.Path(file_okay=False))
 @click.option("-o", "--out", "out_dir", type=click.Path(file_okay=False), default=None,
@@ -189,13 +170,13 @@ def eval_cmd(scene, dataset, out_dir, max_width, res, n_views, images, test_ever
              gate_mode) -> None:
     """Evaluate SCENE on DATASET's test views at many resolutions: PSNR/SSIM/time/Gaussians, JSON + markdown +
     plot + side-by-side crops."""
-    from ..bench import apply_gate_mode
     from ..errors import ProxycodecError
     from ..evaluate import EXTRA_RESOLUTIONS, MAIN_RESOLUTIONS, evaluate, report_markdown, write_report
     from ..explicit import ExplicitModel
-    from .main import parse_resolutions
+    from ..model import apply_gate_mode
+    from ..scenes import load_any
 
-    model = _load_any(scene)
+    model = load_any(scene)
     gate_used = apply_gate_mode(model, gate_mode)
     meta = model.meta
     fit_meta = meta.get("fit", {}) if isinstance(meta.get("fit"), dict) else {}

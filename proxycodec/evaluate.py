@@ -76,7 +76,6 @@ def evaluate(model, data, *, resolutions: Sequence[float] = MAIN_RESOLUTIONS + E
     """
     from .model import image_to_uint8
 
-    torch.set_num_threads(2)
     log = log or (lambda s: None)
     views = list(data.test_indices if views is None else views)
     if not views:

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import os
 import zlib
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -177,3 +177,21 @@ class SceneModel:
 
 def image_to_uint8(image: torch.Tensor) -> np.ndarray:
     return (image.detach().clamp(0, 1).cpu().numpy() * 255.0 + 0.5).astype(np.uint8)
+
+
+def apply_gate_mode(model, mode: str) -> dict | None:
+    """Force the coverage gate of an anchor model on or off for rendering (``mode`` "on" / "off"), or leave the
+    model's own setting ("model"). Returns the gate configuration now in effect (None for a plain 3DGS model, which
+    has no gate). "on" uses the kappa / eta stored with the decoder, so a model trained with ``--no-gate`` is gated
+    post hoc with the values it would have been trained with."""
+    if mode not in ("model", "on", "off"):
+        raise ProxycodecError(f"gate mode must be model, on or off, got {mode!r}")
+    dec = getattr(model, "decoder", None)
+    if dec is None:
+        if mode != "model":
+            raise ProxycodecError("--gate applies to anchor scenes; a plain 3DGS PLY is rendered without a gate")
+        return None
+    if mode != "model":
+        cfg = dec.config
+        dec.config = replace(cfg, gate=replace(cfg.gate, enabled=(mode == "on")))
+    return dec.config.gate.to_json()

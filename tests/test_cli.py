@@ -1,5 +1,6 @@
 """The command line as a user meets it: help, version, and one-line errors with a non-zero exit."""
 
+import os
 import subprocess
 import sys
 
@@ -91,3 +92,35 @@ def test_fit_rejects_a_bad_predictor_shape_before_training(tmp_path):
     (tmp_path / "d").mkdir()
     r = CliRunner().invoke(cli, ["fit", str(tmp_path / "d"), "--predictor-hidden", "0", "-o", str(tmp_path / "s.ply")])
     assert r.exit_code == 2 and "predictor hidden = 0 is out of range" in r.output and "Traceback" not in r.output
+
+
+def test_threads_option_reaches_torch_when_it_loads(tmp_path):
+    """``--threads`` (or PROXYCODEC_THREADS) is applied once by the group: at once when torch is loaded, else as soon
+    as a command imports it; the command line itself does not import torch."""
+    script = """
+import sys
+from click.testing import CliRunner
+from proxycodec.cli.main import cli
+r = CliRunner().invoke(cli, sys.argv[1:])
+assert "torch" in sys.modules, r.output
+import os, torch
+print(r.exit_code, torch.get_num_threads(), os.environ["PROXYCODEC_THREADS"])
+"""
+    missing = str(tmp_path / "nope.pxc")
+    for args, env, want in ((["--threads", "1", "stats", missing], {}, "2 1 1"),
+                            (["stats", missing], {"PROXYCODEC_THREADS": "3"}, "2 3 3")):
+        r = subprocess.run([sys.executable, "-c", script, *args], capture_output=True, text=True, timeout=300,
+                           env={**os.environ, **env})
+        assert r.returncode == 0, r.stderr
+        assert r.stdout.split()[-3:] == want.split()
+    r = CliRunner().invoke(cli, ["--threads", "0", "stats", missing])
+    assert r.exit_code == 2 and "--threads" in r.output
+
+
+def test_fit_explicit_shares_the_anchor_fit_defaults():
+    """``fit`` takes the defaults of the options it shares with ``--explicit`` from FitConfig alone."""
+    from proxycodec.explicit import ExplicitConfig
+    from proxycodec.train import FitConfig
+
+    for name in ("max_width", "seed", "backend"):
+        assert getattr(FitConfig(), name) == getattr(ExplicitConfig(), name), name

@@ -236,7 +236,7 @@ class TestGateSwitches:
         assert reps["on"]["summary"]["psnr_avg"] != reps["off"]["summary"]["psnr_avg"]
 
     def test_eval_gate_refuses_plain_3dgs(self, tiny, tmp_path):
-        from proxycodec.bench import apply_gate_mode
+        from proxycodec.model import apply_gate_mode
         from proxycodec.explicit import ExplicitModel
 
         assert apply_gate_mode(object(), "model") is None
@@ -297,7 +297,7 @@ def test_ablations_compare_with_the_row_the_paper_compares_with():
 
 
 def test_encode_sweep_plan_centres_on_the_defaults():
-    from proxycodec.bench import _knob_id, encode_sweep_plan
+    from proxycodec.bench import encode_sweep_plan, knob_id
     from proxycodec.codec import EncodeConfig
 
     plan = encode_sweep_plan(quick=True)
@@ -305,7 +305,7 @@ def test_encode_sweep_plan_centres_on_the_defaults():
     for name, _, knobs in plan:
         assert knobs["use_fitted"] is False
         EncodeConfig(**knobs).check()
-    ids = {_knob_id(k) for _, _, k in plan}
+    ids = {knob_id(k) for _, _, k in plan}
     assert "encode default (refit)" in ids and "encode proxy_ratio=0.1" in ids
     with pytest.raises(ProxycodecError, match="unknown sweep"):
         encode_sweep_plan(True, ["nope"])

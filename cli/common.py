@@ -1,0 +1,112 @@
+"""What the commands share: one-line user errors, option parsing, config defaults, writing rendered views."""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import importlib
+import sys
+import time
+from pathlib import Path
+
+import click
+
+from ..errors import ProxycodecError
+
+
+def user_errors(fn):
+    """Turn the library's one exception type (and OS errors on user paths) into a one-line message."""
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        try:
+            return fn(*args, **kwargs)
+        except ProxycodecError as e:
+            click.echo(f"error: {e}", err=True)
+            sys.exit(2)
+        except (FileNotFoundError, IsADirectoryError, PermissionError) as e:
+            click.echo(f"error: {e.filename}: {e.strerror}", err=True)
+            sys.exit(2)
+        except KeyboardInterrupt:
+            click.echo("interrupted", err=True)
+            sys.exit(130)
+
+    return wrapper
+
+
+def parse_resolutions(text: str) -> list[float]:
+    from ..camera import check_xi
+
+    try:
+        vals = [float(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        raise ProxycodecError(f"--res expects comma-separated numbers, got {text!r}") from None
+    if not vals:
+        raise ProxycodecError("--res is empty")
+    return [check_xi(v) for v in vals]
+
+
+class ConfigDefault(click.Option):
+    """An option whose default is a field of a configuration dataclass (``config``: "module:Class"; ``field``: the
+    option's name unless given; ``convert``: field value -> option value). The class is imported when click first
+    needs the default (the command's ``--help`` or a run), so building the command line imports no torch."""
+
+    def __init__(self, *args, config: str, field: str | None = None, convert=None, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.config, self.field, self.convert = config, field or self.name, convert
+
+    def get_default(self, ctx, call=True):
+        value = ctx.lookup_default(self.name, call=call)
+        if value is not None:
+            return value
+        module, _, name = self.config.partition(":")
+        f = getattr(importlib.import_module(module), name).__dataclass_fields__[self.field]
+        value = f.default if f.default is not dataclasses.MISSING else f.default_factory()
+        return value if self.convert is None else self.convert(value)
+
+
+def config_option(config: str, *param_decls: str, field: str | None = None, convert=None, **attrs):
+    """``click.option`` with its default from ``config``'s field (:class:`ConfigDefault`); give ``type``."""
+    return click.option(*param_decls, cls=ConfigDefault, config=config, field=field, convert=convert, **attrs)
+
+
+def render_views(model, resolutions, out_dir: Path, views, backend: str, prefix: str = "") -> list[dict]:
+    """Render and write PNGs. ``model``: a ``SceneModel`` or a ``lite.LiteScene`` (torch-free: numpy images)."""
+    from PIL import Image
+
+    cams = model.cameras
+    if not cams:
+        from ..sample import sample_cameras
+
+        cams = sample_cameras()
+    idx = views if views is not None else list(range(len(cams)))
+    for i in idx:
+        if not 0 <= i < len(cams):
+            raise ProxycodecError(f"view {i} does not exist (the scene has {len(cams)} cameras)")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for i in idx:
+        for xi in resolutions:
+            t0 = time.perf_counter()
+            r = model.render(cams[i], xi, backend=backend)
+            dt = time.perf_counter() - t0
+            h, w = r.image.shape[:2]
+            path = out_dir / f"{prefix}view{i:03d}_res{xi:.3f}.png"
+            from ..fileio import atomic_write
+
+            with atomic_write(path) as fh:
+                Image.fromarray(_image_to_uint8(r.image)).save(fh, format="PNG")
+            rows.append({"view": i, "xi": xi, "width": w, "height": h, "gaussians": r.projected.count,
+                         "anchors_visible": len(r.visible_anchor_index), "seconds": dt, "path": str(path)})
+            click.echo(f"view {i:3d}  xi {xi:5.3f}  {w:4d}x{h:<4d}  {r.projected.count:7d} Gaussians  "
+                       f"{dt * 1000:7.1f} ms  -> {path}")
+    return rows
+
+
+def _image_to_uint8(image):
+    """A rendered image (a torch tensor, or a numpy array from the torch-free path) -> [H, W, C] uint8."""
+    if type(image).__module__ == "numpy":  # no torch import for the torch-free path
+        from ..lite import image_to_uint8
+    else:
+        from ..model import image_to_uint8
+    return image_to_uint8(image)

@@ -1,0 +1,188 @@
+"""The measured steps of a benchmark run (fit, 3DGS baseline fit, encode, decode + evaluation, SPZ conversion).
+
+Each takes the JSON arguments the runner recorded for it and returns a JSON-able result; :func:`run_worker` runs one
+and adds the process's peak RSS and load averages (``runner``: in a subprocess of its own, or in this one).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..errors import ProxycodecError
+
+SPZ_TOOL = "@playcanvas/splat-transform@2.7.1"
+
+
+def load_avg() -> list[float]:
+    try:
+        return [round(v, 2) for v in os.getloadavg()]
+    except OSError:  # pragma: no cover
+        return []
+
+
+def _rss_mb(who=None) -> float:
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF if who is None else who).ru_maxrss / 1024.0
+
+
+def _step_fit(a: dict) -> dict:
+    from ..formats.datasets import load_dataset
+    from ..train import FitConfig, checkpoint_path_for, fit
+
+    data = load_dataset(a["dataset"], max_width=a["max_width"], test_every=a.get("test_every", 8))
+    cfg = FitConfig(**{**a["config"], "max_width": a["max_width"]})
+    out = Path(a["out"])
+    out.parent.mkdir(parents=True, exist_ok=True)
+    resume = checkpoint_path_for(out).exists()  # an interrupted earlier run of this step
+    log = lambda s: print(s, file=sys.stderr, flush=True)  # noqa: E731
+    try:
+        res = fit(data, out, cfg, dataset_root=str(Path(a["dataset"]).resolve()), resume=resume, log=log)
+    except ProxycodecError:
+        if not resume:
+            raise
+        checkpoint_path_for(out).unlink(missing_ok=True)  # stale checkpoint of other settings: start afresh
+        res = fit(data, out, cfg, dataset_root=str(Path(a["dataset"]).resolve()), log=log)
+    from ..model import weights_path_for
+
+    return {"iterations": res.iterations, "seconds": res.seconds, "anchors": res.model.scene.num_anchors,
+            "bytes": out.stat().st_size + weights_path_for(out).stat().st_size, "resumed": resume}
+
+
+def _step_explicit(a: dict) -> dict:
+    from ..explicit import ExplicitConfig, run_explicit
+    from ..formats.datasets import load_dataset
+
+    data = load_dataset(a["dataset"], max_width=a["max_width"], test_every=a.get("test_every", 8))
+    cfg = ExplicitConfig(**{**a["config"], "max_width": a["max_width"]})
+    Path(a["out"]).parent.mkdir(parents=True, exist_ok=True)
+    tr = run_explicit(data, cfg, lambda s: print(s, file=sys.stderr, flush=True), out=a["out"])
+    return {"iterations": tr.iteration, "seconds": tr.elapsed, "gaussians": tr.num_gaussians,
+            "bytes": Path(a["out"]).stat().st_size}
+
+
+def _content_key(path: Path) -> str:
+    """Hash of everything a decoder reads from a scene container except the encoder's zstd level."""
+    from ..formats.container import read_container
+
+    c = read_container(path)
+    h = hashlib.sha256()
+    meta = dict(c.meta)
+    meta.pop("encoder", None)
+    h.update(json.dumps(meta, sort_keys=True).encode())
+    for name in sorted(c.arrays):
+        arr = np.ascontiguousarray(c.arrays[name])
+        h.update(f"{name}|{arr.dtype.str}|{arr.shape}".encode())
+        h.update(arr.tobytes())
+    return h.hexdigest()
+
+
+def _step_encode(a: dict) -> dict:
+    from .. import codec
+
+    t0 = time.perf_counter()
+    r = codec.encode(a["source"], a["out"], **a["knobs"])
+    total = time.perf_counter() - t0
+    return {"bytes": r.file_bytes, "seconds": r.seconds["total"], "seconds_call": total,
+            "predictor_seconds": r.seconds.get("predictor"), "anchors": r.anchors, "proxies": r.proxies,
+            "source_bytes": r.source_bytes, "proxy_source": r.meta.get("proxy", {}).get("source"),
+            "predictor_loss": None if r.training is None else [r.training.baseline_loss, r.training.final_loss],
+            "content_key": _content_key(Path(a["out"]))}
+
+
+def _step_eval(a: dict) -> dict:
+    from ..evaluate import evaluate
+    from ..explicit import ExplicitModel
+    from ..model import apply_gate_mode
+    from ..scenes import load_any
+
+    t0 = time.perf_counter()
+    model = load_any(a["model"])
+    load_s = time.perf_counter() - t0
+    out: dict[str, Any] = {"load_seconds": load_s, "rss_after_load_mb": _rss_mb()}
+    out["gate"] = apply_gate_mode(model, a.get("gate", "model"))
+    if int(a["views"]) <= 0:
+        return out
+    from ..formats.datasets import load_dataset
+
+    data = load_dataset(a["dataset"], max_width=a["max_width"], test_every=a.get("test_every", 8))
+    if isinstance(model, ExplicitModel):
+        model.background = tuple(data.background)
+    views = list(data.test_indices)[:int(a["views"])]
+    if not views:
+        raise ProxycodecError("the dataset has no test views")
+    model.render(data.cameras[views[0]], 0.5, backend=a.get("backend", "auto"))  # warm-up (numba cache, allocator)
+    rep = evaluate(model, data, resolutions=[float(x) for x in a["resolutions"]], views=views,
+                   backend=a.get("backend", "auto"))
+    s = rep.summary
+    out.update({
+        "views": views, "test_views_available": len(data.test_indices),
+        "psnr_avg": s["psnr_avg"], "ssim_avg": s["ssim_avg"], "psnr_10": s["psnr_10"], "psnr_100": s["psnr_100"],
+        "per_resolution": [{"xi": d["xi"], "width": d["width"], "height": d["height"], "psnr": d["psnr"],
+                            "ssim": d["ssim"], "ms": None if d["seconds"] is None else 1000.0 * d["seconds"],
+                            "gaussians": d["gaussians"]} for d in rep.per_resolution],
+    })
+    return out
+
+
+def _npx_tool() -> tuple[str | None, str | None]:
+    """(npx path, None) when ``SPZ_TOOL`` runs, else (None, why not)."""
+    npx = shutil.which("npx")
+    if npx is None:
+        return None, "npx (Node.js) is not installed"
+    try:
+        r = subprocess.run([npx, "-y", SPZ_TOOL, "--help"], capture_output=True, text=True, timeout=240)
+    except subprocess.TimeoutExpired:
+        return None, f"npx could not fetch {SPZ_TOOL} in time (no registry access?)"
+    if r.returncode != 0 or "splat-transform" not in r.stdout:
+        return None, f"npx could not run {SPZ_TOOL}: {r.stderr.strip()[-200:]}"
+    return npx, None
+
+
+def _step_spz(a: dict) -> dict:
+    """INRIA PLY -> SPZ with splat-transform, then SPZ -> PLY again so that the SPZ's own quality can be evaluated."""
+    import resource
+
+    npx, why = _npx_tool()
+    if npx is None:
+        return {"skipped": why}
+    t0 = time.perf_counter()
+    r = subprocess.run([npx, "-y", SPZ_TOOL, "-w", a["ply"], a["out"]], capture_output=True, text=True, timeout=900)
+    conv_s = time.perf_counter() - t0
+    if r.returncode != 0:
+        raise ProxycodecError(f"splat-transform failed: {(r.stdout + r.stderr).strip()[-300:]}")
+    t0 = time.perf_counter()
+    r2 = subprocess.run([npx, "-y", SPZ_TOOL, "-w", a["out"], a["back"]], capture_output=True, text=True, timeout=900)
+    back_s = time.perf_counter() - t0
+    if r2.returncode != 0:
+        raise ProxycodecError(f"splat-transform (SPZ -> PLY) failed: {(r2.stdout + r2.stderr).strip()[-300:]}")
+    return {"bytes": Path(a["out"]).stat().st_size, "seconds": conv_s, "back_seconds": back_s, "tool": SPZ_TOOL,
+            "node_peak_rss_mb": _rss_mb(resource.RUSAGE_CHILDREN)}
+
+
+STEPS: dict[str, Callable[[dict], dict]] = {"fit": _step_fit, "explicit": _step_explicit, "encode": _step_encode,
+                                             "eval": _step_eval, "spz": _step_spz}
+
+
+def run_worker(kind: str, args: dict) -> dict:
+    """Run one step in this process; adds the process's peak RSS and load averages."""
+    t0 = time.perf_counter()
+    load0 = load_avg()
+    out = STEPS[kind](args)
+    out["peak_rss_mb"] = _rss_mb()
+    out["wall_seconds"] = time.perf_counter() - t0
+    out["loadavg_before"], out["loadavg_after"] = load0, load_avg()
+    return out
+
+

@@ -1,0 +1,27 @@
+"""Open any scene file a user may hand us, whatever its format (``eval``, ``bench``)."""
+
+from __future__ import annotations
+
+import os
+
+
+def load_any(path: str | os.PathLike):
+    """An anchor PLY (+ weights sidecar) as a ``SceneModel``, an INRIA 3DGS PLY (``fit --explicit``, other 3DGS
+    trainers) as an ``ExplicitModel`` (rendered as plain 3DGS) or a proxycodec container decoded to a
+    ``SceneModel`` (leaves regenerated)."""
+    from .explicit import ExplicitModel, is_inria_ply
+    from .formats.container import MAGIC
+    from .model import SceneModel
+
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(len(MAGIC))
+    except OSError:
+        head = b""
+    if head == MAGIC:
+        from .codec import decode
+
+        return decode(path)
+    if is_inria_ply(path):
+        return ExplicitModel.load(path)
+    return SceneModel.load(path)
