@@ -199,6 +199,25 @@ def test_no_import_cycle(graph):
 
 
 # ------------------------------------------------------------------------------------------------ the checker
+def private_imports(mods: dict[str, Path] | None = None) -> list[str]:
+    """``from M import _name`` in any package module: a private name crossing a module boundary (dunders such as
+    ``__version__`` are public)."""
+    out = []
+    for name, path in sorted((mods or package_modules()).items()):
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.ImportFrom):
+                out += [f"{name}:{node.lineno} imports {node.module or '.'}.{a.name}" for a in node.names
+                        if a.name.startswith("_") and not a.name.startswith("__")]
+    return out
+
+
+def test_no_private_name_crosses_a_module_boundary(tmp_path):
+    bad = private_imports()
+    assert not bad, "private names imported from another module: " + "; ".join(bad)
+    (tmp_path / "a.py").write_text("from .b import _hidden, public\nfrom . import __version__\n")
+    assert private_imports({"p.a": tmp_path / "a.py"}) == ["p.a:1 imports b._hidden"]
+
+
 def test_cycle_finder_on_a_small_graph():
     g = {"a": {"b"}, "b": {"c"}, "c": {"a", "d"}, "d": set(), "e": {"e"}, "f": {"g"}, "g": {"f"}}
     assert find_cycles(g) == [["a", "b", "c", "a"], ["e", "e"], ["f", "g", "f"]]

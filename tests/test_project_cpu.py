@@ -248,12 +248,14 @@ class TestHardCases:
         assert torch.equal(p.index, r.index)
         assert all(torch.isfinite(x).all() for x in ga)
         k = pc._constants(cam, GateConfig(), 0.01, 1e10, None, np.float32)
-        w = np.zeros(pc._NW, np.float32)
+        from proxycodec.render import _project_kernels as pk
+
+        w = np.zeros(pk.NW, np.float32)
         floored = negative = 0
         for i in range(n):
-            pc._fwd_one.py_func(*(t.numpy() for t in params[:4]), i, k, True, w)
-            floored += bool(w[pc._DRAW] < k[pc._DD])
-            negative += bool(w[pc._DETU] < 0)
+            pk.forward_one.py_func(*(t.numpy() for t in params[:4]), i, k, True, w)
+            floored += bool(w[pk.W_DRAW] < k[pk.K_DD])
+            negative += bool(w[pk.W_DETU] < 0)
         assert floored > 20 and negative > 100
 
     def test_zero_and_tiny_quaternions(self):

@@ -19,18 +19,18 @@ _PAR = {"parallel": True, "fastmath": False, "cache": True, "nogil": True}
 _SER = {"fastmath": False, "cache": True, "nogil": True}
 
 # Constants, in the input dtype (index into ``k``).
-(_NEAR, _FAR, _AMIN, _LXN, _LXP, _LYN, _LYP, _FX, _FY, _CX, _CY, _QEPS2, _ONE, _TWO, _DIL, _DD, _PI, _FLOOR,
+(_NEAR, _FAR, _AMIN, _LXN, _LXP, _LYN, _LYP, _FX, _FY, _CX, _CY, _QEPS2, _ONE, _TWO, _DIL, K_DD, _PI, _FLOOR,
  _KAPPA, _ETA, _ZERO, _C255, _W, _H) = range(24)
 _R = 24  # camera rotation, 9 entries (row-major)
 _SH = 33  # shift, 3 entries
 _NK = 36
 
 # Per-Gaussian forward values (scratch row, input dtype), what the backward needs.
-(_PX, _PY, _PZ, _IZ, _RX, _RY, _TX, _TY, _FXZ, _FYZ, _NRM, _QN, _RQ, _T0, _T1, _U0, _U1, _A, _B, _C, _DETU,
- _AD, _CD, _DRAW, _DET, _IDET, _G, _OP, _SQ, _MX, _MY, _E0, _E1, _CA, _CB, _CC) = (
+(_PX, _PY, _PZ, _IZ, _RX, _RY, _TX, _TY, _FXZ, _FYZ, _NRM, _QN, _RQ, _T0, _T1, _U0, _U1, _A, _B, _C, W_DETU,
+ _AD, _CD, W_DRAW, _DET, _IDET, _G, _OP, _SQ, _MX, _MY, _E0, _E1, _CA, _CB, _CC) = (
     0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 15, 24, 27, 30, 33, 36, 37, 38, 39, 40, 41, 42, 43, 44, 45, 46, 47, 48,
     49, 50, 51, 52, 53, 54)
-_NW = 55
+NW = 55
 
 # Output columns of the forward's full-size buffer.
 _NOUT = 10  # mx, my, conic a, b, c, op, z, ext x, ext y, g
@@ -42,7 +42,7 @@ def _isfinite(x):
 
 
 @njit(**_SER)
-def _fwd_one(means, quats, scales, opac, i, k, gate_on, w):
+def forward_one(means, quats, scales, opac, i, k, gate_on, w):
     """The reference's forward for Gaussian i, in k's dtype. Fills w; returns (kept by the cheap culls, visible)."""
     d0 = means[i, 0] - k[_SH]
     d1 = means[i, 1] - k[_SH + 1]
@@ -119,14 +119,14 @@ def _fwd_one(means, quats, scales, opac, i, k, gate_on, w):
     w[_B] = b
     w[_C] = c
     det_u = a * c - b * b
-    w[_DETU] = det_u
+    w[W_DETU] = det_u
     a_d = a + k[_DIL]
     c_d = c + k[_DIL]
     w[_AD] = a_d
     w[_CD] = c_d
     draw = a_d * c_d - b * b
-    w[_DRAW] = draw
-    det = draw if not (draw < k[_DD]) else k[_DD]  # clamp_min, NaN-propagating
+    w[W_DRAW] = draw
+    det = draw if not (draw < k[K_DD]) else k[K_DD]  # clamp_min, NaN-propagating
     w[_DET] = det
     idet = one / det
     w[_IDET] = idet
@@ -169,7 +169,7 @@ def _forward(means, quats, scales, opac, k, gate_on, n_chunks, scratch, vis, out
     for ch in prange(n_chunks):
         w = scratch[ch]
         for i in range((n * ch) // n_chunks, (n * (ch + 1)) // n_chunks):
-            _, v = _fwd_one(means, quats, scales, opac, i, k, gate_on, w)
+            _, v = forward_one(means, quats, scales, opac, i, k, gate_on, w)
             vis[i] = v
             if v:
                 out[i, 0] = w[_MX]
@@ -201,7 +201,7 @@ def _gather(idx, out, means2d, conics, op, depths, ext, gate):
 
 
 @njit(**_PAR)
-def _backward(means, quats, scales, opac, k, gate_on, n_chunks, scratch, idx, g_m2d, g_con, g_op, g_dep,
+def backward_all(means, quats, scales, opac, k, gate_on, n_chunks, scratch, idx, g_m2d, g_con, g_op, g_dep,
               d_means, d_quats, d_scales, d_opac):
     """Gradients of the rows ``idx`` (float64 chain at the input-dtype forward values); other rows stay zero."""
     m = idx.shape[0]
@@ -216,7 +216,7 @@ def _backward(means, quats, scales, opac, k, gate_on, n_chunks, scratch, idx, g_
         dRq = np.empty(9)
         for r in range((m * ch) // n_chunks, (m * (ch + 1)) // n_chunks):
             i = idx[r]
-            _fwd_one(means, quats, scales, opac, i, k, gate_on, w)
+            forward_one(means, quats, scales, opac, i, k, gate_on, w)
             o = float(opac[i])
             g = float(w[_G])
             gop = float(g_op[r])
@@ -227,7 +227,7 @@ def _backward(means, quats, scales, opac, k, gate_on, n_chunks, scratch, idx, g_
                 dg = gop * o
                 dsig = dg * (1.0 - g) * g
                 dsq = float(k[_PI]) * float(k[_KAPPA]) * dsig
-                if w[_DETU] >= k[_ZERO]:  # clamp_min passes the gradient where x >= min
+                if w[W_DETU] >= k[_ZERO]:  # clamp_min passes the gradient where x >= min
                     d_detu = dsq / (2.0 * float(w[_SQ]))
             a = float(w[_A])
             b = float(w[_B])
@@ -243,7 +243,7 @@ def _backward(means, quats, scales, opac, k, gate_on, n_chunks, scratch, idx, g_
             d_cd = gca * idet
             d_ad = gcc * idet
             db = -gcb * idet
-            if w[_DRAW] >= k[_DD]:  # det.clamp_min(0.09)
+            if w[W_DRAW] >= k[K_DD]:  # det.clamp_min(0.09)
                 d_draw = -d_idet * idet * idet
                 d_ad += d_draw * c_d
                 d_cd += d_draw * a_d
@@ -357,7 +357,7 @@ def constants(camera, gate: GateConfig, near: float, far: float, origin, np_dt) 
     k[_LXN], k[_LXP], k[_LYN], k[_LYP] = -lim_xn, lim_xp, -lim_yn, lim_yp
     k[_FX], k[_FY], k[_CX], k[_CY] = fx, fy, cx, cy
     k[_QEPS2], k[_ONE], k[_TWO] = QUAT_EPS**2, 1.0, 2.0
-    k[_DIL], k[_DD] = DILATION, DILATION * DILATION
+    k[_DIL], k[K_DD] = DILATION, DILATION * DILATION
     k[_PI], k[_FLOOR], k[_KAPPA], k[_ETA] = math.pi, GATE_DET_FLOOR, gate.kappa, gate.eta
     k[_ZERO], k[_C255], k[_W], k[_H] = 0.0, 255.0, W, H
     k[_R:_R + 9] = np.asarray(camera.rotation, np.float64).reshape(9)
@@ -375,7 +375,7 @@ def project_forward(means, quats, scales, opacities, k, gate_on: bool, small: in
     with threads_for(n, small) as nt:
         nch = n_chunks(n, nt)
         if n:
-            _forward(means, quats, scales, opacities, k, gate_on, nch, np.empty((nch, _NW), np_dt), vis, out)
+            _forward(means, quats, scales, opacities, k, gate_on, nch, np.empty((nch, NW), np_dt), vis, out)
         idx = np.flatnonzero(vis).astype(np.int64)
         m = idx.shape[0]
         m2d, con, op, dep = np.empty((m, 2), np_dt), np.empty((m, 3), np_dt), np.empty(m, np_dt), np.empty(m, np_dt)

@@ -25,7 +25,7 @@ _SER = {"fastmath": False, "cache": True, "nogil": True}
 _MX, _MY, _A, _B, _C, _DET, _THR, _RX, _RY, _FULL = range(10)
 _NGEO = 10
 # gradient buffer columns: d mean x, d mean y, d conic a, b, c, d opacity, then d colour[C].
-_NG = 6
+N_GRAD = 6
 
 
 # ---------------------------------------------------------------------------------------------------- binning
@@ -318,7 +318,7 @@ def _forward(tile_off, tile_order, isect_g, geo, mxy, con, op, col, pcx, pcy, k_
 
 
 @njit(**_PAR)
-def _backward(tile_off, tile_order, isect_g, tm_gm, geo, mxy, con, op, col, pcx, pcy, k_dt, bg, width, height,
+def backward_tiles(tile_off, tile_order, isect_g, tm_gm, geo, mxy, con, op, col, pcx, pcy, k_dt, bg, width, height,
               tiles_x, t_fin, nc, g_img, g_alpha, gbuf):
     """Writes the gradient of tile-major entry k to gbuf row tm_gm[k] (Gaussian-major)."""
     n_tiles = tile_off.shape[0] - 1
@@ -422,11 +422,11 @@ def _backward(tile_off, tile_order, isect_g, tm_gm, geo, mxy, con, op, col, pcx,
             gbuf[r, 4] = d_c
             gbuf[r, 5] = d_o
             for ch in range(nch):
-                gbuf[r, _NG + ch] = d_col[ch]
+                gbuf[r, N_GRAD + ch] = d_col[ch]
 
 
 @njit(**_PAR)
-def _reduce(goff, order, gbuf, out):
+def reduce_rows(goff, order, gbuf, out):
     """out[order[g]] = sum of Gaussian g's gradient rows (float64 sums, stored in out's dtype)."""
     n = goff.shape[0] - 1
     m = gbuf.shape[1]
@@ -498,7 +498,7 @@ def threads_for(work: int, small: int = _SMALL_WORK):
         numba.set_num_threads(prev)
 
 
-def _per_tile():
+def per_tile_threads():
     """Dynamic scheduling, one tile at a time: tiles differ wildly in cost. Per-Gaussian loops (binning, the
     gradient reduction) keep numba's default static chunks: handing out 100k tasks one by one cost 280 ms."""
     return numba.parallel_chunksize(1)
@@ -508,7 +508,7 @@ def _n_chunks() -> int:
     return max(1, 4 * numba.get_num_threads())
 
 
-class _Binned:
+class Binned:
     """Depth-sorted inputs as numpy arrays plus the tile lists: everything the backward needs."""
 
     __slots__ = (
@@ -548,10 +548,10 @@ def depth_order(depths: np.ndarray) -> np.ndarray:
     return _radix_argsort(key.astype(np.uint64), nbytes)
 
 
-def bin_gaussians(means2d, conics, opacities, colors, depths, extent, width, height) -> _Binned:
+def bin_gaussians(means2d, conics, opacities, colors, depths, extent, width, height) -> Binned:
     """Inputs: numpy arrays, means2d/conics/opacities/colors C-contiguous in one float dtype (the compute dtype)."""
     np_dt = means2d.dtype
-    b = _Binned()
+    b = Binned()
     b.order = depth_order(depths)
     n = means2d.shape[0]
     nch = colors.shape[1]
@@ -594,7 +594,7 @@ def rasterize_forward(means2d, conics, opacities, colors, depths, extent, width:
         alpha = np.empty((height, width), np_dt)
         t_fin = np.empty((height, width), np.float64)
         nc = np.empty((height, width), np.int32)
-        with _per_tile():
+        with per_tile_threads():
             _forward(b.tile_off, b.tile_order, b.isect_g, b.geo, b.mxy, b.con, b.op, b.col, b.pcx, b.pcy,
                      b.k_dt, _stop_threshold(np_dt), bg64, width, height, b.tiles_x, img, alpha, t_fin, nc)
     return img, alpha, t_fin, nc, b

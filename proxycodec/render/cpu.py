@@ -32,11 +32,11 @@ import torch
 
 # The kernels and their numpy driver live in a torch-free module (the torch-free decode path calls them directly).
 from ._raster_kernels import (
-    _NG,
-    _backward,
-    _Binned,
-    _per_tile,
-    _reduce,
+    N_GRAD,
+    backward_tiles,
+    Binned,
+    per_tile_threads,
+    reduce_rows,
     bin_gaussians,
     depth_order,
     rasterize_forward,
@@ -49,7 +49,7 @@ def _depth_order(depths: torch.Tensor) -> torch.Tensor:
     return torch.from_numpy(depth_order(depths.detach().numpy()))
 
 
-def _bin(means2d, conics, opacities, colors, depths, extent, width, height) -> _Binned:
+def _bin(means2d, conics, opacities, colors, depths, extent, width, height) -> Binned:
     """Inputs: CPU tensors, means2d/conics/opacities/colors contiguous in one float dtype (the compute dtype)."""
     return bin_gaussians(means2d.detach().numpy(), conics.detach().numpy(), opacities.detach().numpy(),
                          colors.detach().numpy(), depths.detach().numpy(), extent.detach().contiguous().numpy(),
@@ -94,15 +94,15 @@ class _RasterizeCPU(torch.autograd.Function):
         if b is None:
             return (torch.zeros(0, 2, dtype=dt), torch.zeros(0, 3, dtype=dt), torch.zeros(0, dtype=dt),
                     torch.zeros(0, nch, dtype=dt), None, None, None, None, g_bg)
-        gbuf = np.zeros((b.n_isect, _NG + nch), np.float64)
-        out = np.empty((n, _NG + nch), b.mxy.dtype)
+        gbuf = np.zeros((b.n_isect, N_GRAD + nch), np.float64)
+        out = np.empty((n, N_GRAD + nch), b.mxy.dtype)
         with threads_for(n + width * height):
-            with _per_tile():
-                _backward(b.tile_off, b.tile_order, b.isect_g, b.tm_gm, b.geo, b.mxy, b.con, b.op, b.col, b.pcx,
+            with per_tile_threads():
+                backward_tiles(b.tile_off, b.tile_order, b.isect_g, b.tm_gm, b.geo, b.mxy, b.con, b.op, b.col, b.pcx,
                           b.pcy, b.k_dt, ctx.bg64, width, height, b.tiles_x, ctx.t_fin, ctx.nc, g_img, g_alpha, gbuf)
-            _reduce(b.goff, b.order, gbuf, out)
+            reduce_rows(b.goff, b.order, gbuf, out)
         grads = torch.from_numpy(out)
-        return (grads[:, 0:2], grads[:, 2:5], grads[:, 5], grads[:, _NG:], None, None, None, None, g_bg)
+        return (grads[:, 0:2], grads[:, 2:5], grads[:, 5], grads[:, N_GRAD:], None, None, None, None, g_bg)
 
 
 def rasterize_cpu(

@@ -25,19 +25,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-# The kernels and their numpy driver live in a torch-free module (the torch-free decode path calls them directly);
-# _DD, _DETU, _DRAW and _fwd_one are imported for tests/test_project_cpu.py, which reaches for them here.
-from ._project_kernels import (  # noqa: F401
-    _DD,
-    _DETU,
-    _DRAW,
-    _NW,
-    SMALL_WORK,
-    _backward,
-    _fwd_one,
-    constants,
-    project_forward,
-)
+# The kernels and their numpy driver live in a torch-free module (the torch-free decode path calls them directly).
+from ._project_kernels import NW, SMALL_WORK, backward_all, constants, project_forward
 from ._project_kernels import n_chunks as _n_chunks
 from ._raster_kernels import threads_for
 from .project import GateConfig, Projected, project_gaussians
@@ -91,8 +80,8 @@ class _ProjectCPU(torch.autograd.Function):
         if m:
             with _threads(m) as nt:
                 nch = _n_chunks(m, nt)
-                _backward(*(t.detach().numpy() for t in (means, quats, scales, opacities)), k, ctx.gate_on, nch,
-                          np.empty((nch, _NW), np_dt), idx, gm, gc, go, gd, d_means, d_quats, d_scales, d_opac)
+                backward_all(*(t.detach().numpy() for t in (means, quats, scales, opacities)), k, ctx.gate_on, nch,
+                          np.empty((nch, NW), np_dt), idx, gm, gc, go, gd, d_means, d_quats, d_scales, d_opac)
         return (torch.from_numpy(d_means), torch.from_numpy(d_quats), torch.from_numpy(d_scales),
                 torch.from_numpy(d_opac), None, None)
 
