@@ -18,8 +18,12 @@ backend), step by step:
 - projection (with the pixel coverage gate) and compositing call the very numba kernels behind the ``cpu`` backend
   (``render/_project_kernels.py``, ``render/_raster_kernels.py``) on numpy arrays.
 
-float32 matrix products and transcendental functions in numpy are not bit-identical to torch's, so regenerated leaf
-features agree to ~1e-7 relative and images to ~1e-6 (tests/test_decode_lite.py holds them to 1e-5 and 1e-4).
+float32 matrix products and transcendental functions in numpy are not bit-identical to torch's (and which way they
+round depends on the machine's BLAS kernels), so regenerated leaf features agree to ~1e-7 relative, the Gaussians'
+parameters to float32 rounding, and images to ~1e-6 except where a value within that rounding of a threshold is
+decided differently (a whole Gaussian then shows at a pixel in one image only). Given the same Gaussians
+(``LiteScene.composite``), projection and compositing give the torch path's bits. tests/test_decode_lite.py
+checks each stage (SPEC.md, "Portability").
 
 Only the residual predictor is implemented; ``decode`` raises ``Unsupported`` for other predictor kinds, and
 callers (the CLI) then take the torch path.
@@ -197,6 +201,7 @@ class Gaussians:
     colors: np.ndarray
     anchor_index: np.ndarray
     origin: np.ndarray  # [3] float32
+    slot: np.ndarray | None = None  # [N] which of the K offsets (``NeuralGaussians.slot``)
 
 
 class Decoder:
@@ -247,7 +252,7 @@ class Decoder:
         a_idx, slot = np.nonzero(mask)
         return Gaussians(means=means[a_idx, slot], quats=cov[a_idx, slot, 3:], scales=scales[a_idx, slot],
                          opacities=opacity[a_idx, slot], colors=color[a_idx, slot], anchor_index=live[a_idx],
-                         origin=camera_center)
+                         origin=camera_center, slot=slot)
 
 
 def visible_anchors(positions: np.ndarray, radius: np.ndarray, camera: Camera, near: float = NEAR) -> np.ndarray:
@@ -333,12 +338,23 @@ class LiteScene:
             raise ValueError(f"the torch-free path renders with the cpu backend only, not {backend!r}")
         xi = check_xi(xi)
         cam = camera.scaled(xi)
+        g, vis = self.decode_view(cam, xi)
+        return self.composite(g, cam, vis)
+
+    def decode_view(self, cam: Camera, xi: float) -> tuple[Gaussians, np.ndarray]:
+        """``model.decode_view``: the Gaussians of the anchors visible from ``cam`` (already at its render
+        resolution), ``anchor_index`` into the whole scene, and the visible anchor indices."""
         vis = visible_anchors(self.positions, self.extent_radius(), cam)
         center = np.asarray(cam.center, dtype=_F32)
         g = self.decoder(self.positions[vis], self.features[vis], self.offsets[vis], self.scalings[vis], center, xi)
         g.anchor_index = vis[g.anchor_index]
+        return g, vis
+
+    def composite(self, g: Gaussians, cam: Camera, vis: np.ndarray) -> LiteRender:
+        """Projection (with the decoder's gate) and compositing of ``g`` into ``cam`` (at its render resolution):
+        the numba kernels behind the ``cpu`` backend, so the same Gaussians give the torch path's bits."""
         gate = self.decoder.config.gate
-        k = constants(cam, gate, NEAR, FAR, center.astype(np.float64), _F32)
+        k = constants(cam, gate, NEAR, FAR, np.asarray(g.origin, dtype=_F32).astype(np.float64), _F32)
         c = np.ascontiguousarray
         m2d, con, op, dep, ext, g_val, idx = project_forward(c(g.means), c(g.quats), c(g.scales), c(g.opacities), k,
                                                              bool(gate.enabled))
