@@ -8,6 +8,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import flips
 import numpy as np
 import pytest
 import torch
@@ -19,7 +20,7 @@ from test_codec import FAST, tiny_model
 from proxycodec import codec, lite
 from proxycodec.camera import orbit_cameras
 from proxycodec.decoder import DecoderConfig, GaussianDecoder
-from proxycodec.model import SceneModel, image_to_uint8
+from proxycodec.model import SceneModel
 from proxycodec.netconfig import PredictorConfig
 from proxycodec.proxy import ResidualPredictor
 from proxycodec.render.project import GateConfig
@@ -87,53 +88,95 @@ def test_arrays_are_the_torch_decoders(encoded):
     np.testing.assert_allclose(got.extent_radius(), s.extent_radius().numpy(), rtol=1e-6)  # exp, norm: to 1 ulp
 
 
+# The numpy MLPs and torch's agree to float32 rounding, not bit for bit (different BLAS kernels sum in different
+# orders: OpenBLAS vs MKL, AVX2 vs AVX-512), so a value that lies that close to a threshold -- opacity > 0, the
+# frustum test, the 1/255 cull, alpha >= 1/255 at a pixel, T >= 1e-4, the depth order -- can be decided differently by
+# the two paths and a whole Gaussian then shows in one image only (issue #14: on an AMD EPYC, OpenBLAS's Zen kernels
+# flipped one alpha >= 1/255 test: a 1.1e-3 pixel difference). So the comparison is split where the paths can
+# differ: the same Gaussians through both give the same bits (projection and compositing are the same kernels);
+# the decoders agree to float32 rounding Gaussian by Gaussian; and the end-to-end images agree tightly at every pixel
+# where no decision lies within the paths' rounding of its threshold (tests/flips.py).
+RTOL = 1e-4  # alpha (so T) differ by < 1e-5 relative between the two paths: measured, all variants, views and xis
+DTOL = 1e-5  # depths differ by < 3e-7 relative
+OTOL = 1e-5  # opacities (tanh) differ by < 1e-7
+IMG_ATOL = 1e-5  # where no decision flips: images differ by < 3e-7
+
+
+def _as_lite(g) -> lite.Gaussians:
+    """torch ``NeuralGaussians`` -> ``lite.Gaussians`` (the same float32 arrays)."""
+    return lite.Gaussians(**{k: getattr(g, k).numpy() for k in ("means", "quats", "scales", "opacities", "colors",
+                                                                  "anchor_index", "origin", "slot")})
+
+
+def assert_renders_agree(want, got, camera, xi, r_t=None, r_l=None) -> int:
+    """``want.render`` (torch, cpu backend) and ``got.render`` (lite) of ``camera`` at ``xi``, stage by stage
+    (``flips.assert_renders_agree``); returns how many pixels a flipped decision changed."""
+    r_t = want.render(camera, xi, backend="cpu") if r_t is None else r_t
+    r_l = got.render(camera, xi) if r_l is None else r_l
+    cam = camera.scaled(xi)
+    assert r_l.image.shape == (cam.height, cam.width, 3) and r_l.image.dtype == np.float32
+    # visible anchors: the same, but for spheres that touch the frustum to float32 rounding
+    v_t, v_l = r_t.visible_anchor_index.numpy(), r_l.visible_anchor_index
+    fm = flips.frustum_margins(want.scene.positions, want.scene.extent_radius(), cam)
+    flips.match_rows(v_t, v_l, fm[v_t], fm[v_l], 1e-5, 2, "visible anchors")
+    return flips.assert_renders_agree(r_t, r_l, want.decoder.config.n_offsets, otol=OTOL, rtol=RTOL, dtol=DTOL,
+                                      atol=IMG_ATOL, max_flips=max(8, cam.width * cam.height // 100),
+                                      param_rtol=1e-5, param_atol=1e-5, what=f"xi={xi}: ")
+
+
 def test_images_match_the_cpu_backend(encoded):
     _, want, got = encoded
     for cam in want.cameras[:2]:
         for xi in XIS:
-            r_t = want.render(cam, xi, backend="cpu")
-            r_l = got.render(cam, xi)
-            a, b = r_t.image.numpy(), r_l.image
-            assert a.shape == b.shape and b.dtype == np.float32, (xi, a.shape, b.shape)
-            assert np.abs(a - b).max() < 1e-4, (xi, float(np.abs(a - b).max()))
-            assert np.abs(r_t.alpha.numpy() - r_l.alpha).max() < 1e-4
-            assert abs(r_t.projected.count - r_l.projected.count) <= 1
+            r_t, r_l = want.render(cam, xi, backend="cpu"), got.render(cam, xi)
+            assert_renders_agree(want, got, cam, xi, r_t, r_l)
             assert r_l.projected.count > 0 or xi == 0.025
-            assert np.array_equal(r_t.visible_anchor_index.numpy(), r_l.visible_anchor_index)
 
 
-def test_same_decoder_inputs_give_the_same_gaussians_and_bits_from_projection_on(encoded):
+def test_same_gaussians_give_the_cpu_backends_bits(encoded):
     """Given the torch decoder's own Gaussians, the lite projection + compositing reproduce the cpu backend bit for
-    bit (they are the same numba kernels); the numpy decoder matches torch's to float32 rounding."""
+    bit, on any machine: they are the same numba kernels on the same float32 inputs."""
+    _, want, got = encoded
+    for cam in want.cameras[:2]:
+        for xi in XIS:
+            r_t = want.render(cam, xi, backend="cpu")
+            r = got.composite(_as_lite(r_t.gaussians), cam.scaled(xi), r_t.visible_anchor_index.numpy())
+            p, q = r.projected, r_t.projected
+            assert p.count == q.count and (p.count > 0 or xi == 0.025)
+            for k in ("means2d", "conics", "opacities", "colors", "depths", "extent", "index", "gate"):
+                assert getattr(p, k).tobytes() == getattr(q, k).numpy().tobytes(), (xi, k)
+            assert r.image.dtype == np.float32 and r.image.tobytes() == r_t.image.numpy().tobytes(), xi
+            assert r.alpha.tobytes() == r_t.alpha.numpy().tobytes(), xi
+
+
+def test_same_anchors_give_the_torch_decoders_gaussians(encoded):
+    """Given the torch path's anchors, the numpy decoder gives torch's Gaussians to float32 rounding: the same set
+    but for opacities within rounding of 0, and (``lite.visible_anchors``) the same visible anchors but for
+    spheres within rounding of the frustum."""
     _, want, got = encoded
     from proxycodec.model import decode_view
 
-    cam = want.cameras[0].scaled(0.3)
-    with torch.no_grad():
-        g_t, vis = decode_view(want.scene, want.decoder, cam, 0.3)
-    s, v = want.scene, vis.numpy()
-    center = np.asarray(cam.center, np.float32)
-    g_l = got.decoder(*(getattr(s, k).numpy()[v] for k in ("positions", "features", "offsets", "scalings")),
-                      center, 0.3)
-    assert np.array_equal(v[g_l.anchor_index], g_t.anchor_index.numpy())
-    for k in ("means", "quats", "scales", "opacities", "colors"):
-        np.testing.assert_allclose(getattr(g_l, k), getattr(g_t, k).numpy(), rtol=1e-5, atol=1e-6, err_msg=k)
-    from proxycodec.render import project, rasterize
-    from proxycodec.render._project_kernels import constants, project_forward
-    from proxycodec.render._raster_kernels import rasterize_forward
-
-    gate = want.decoder.config.gate
-    with torch.no_grad():
-        proj = project(g_t.means, g_t.quats, g_t.scales, g_t.opacities, g_t.colors, cam, gate=gate,
-                       origin=g_t.origin, backend="cpu")
-        img, _ = rasterize(proj, torch.tensor(want.background, dtype=torch.float32), "cpu")
-    k = constants(cam, gate, 0.01, 1e10, g_t.origin.double().numpy(), np.float32)
-    m2d, con, op, dep, ext, _, idx = project_forward(*(getattr(g_t, n).numpy() for n in
-                                                       ("means", "quats", "scales", "opacities")), k, gate.enabled)
-    assert np.array_equal(idx, proj.index.numpy()) and m2d.tobytes() == proj.means2d.numpy().tobytes()
-    bg64 = np.asarray(want.background, np.float32).astype(np.float64)
-    img_l = rasterize_forward(m2d, con, op, g_t.colors.numpy()[idx], dep, ext, cam.width, cam.height, bg64)[0]
-    assert img_l.tobytes() == img.numpy().tobytes()
+    s = want.scene
+    K = want.decoder.config.n_offsets
+    arrays = [getattr(s, k).numpy() for k in ("positions", "features", "offsets", "scalings")]
+    for cam0 in want.cameras[:2]:
+        for xi in XIS:
+            cam = cam0.scaled(xi)
+            with torch.no_grad():
+                g_t, vis = decode_view(s, want.decoder, cam, xi)
+            v = vis.numpy()
+            v_l = lite.visible_anchors(arrays[0], s.extent_radius().numpy(), cam)
+            fm = flips.frustum_margins(s.positions, s.extent_radius(), cam)
+            flips.match_rows(v, v_l, fm[v], fm[v_l], 1e-5, 2, "visible anchors")
+            g_l = got.decoder(*(x[v] for x in arrays), np.asarray(cam.center, np.float32), xi)
+            g_l.anchor_index = v[g_l.anchor_index]
+            ia, ib = flips.match_rows(flips.gaussian_keys(g_t, K), flips.gaussian_keys(g_l, K),
+                                      np.abs(g_t.opacities.numpy()), np.abs(g_l.opacities), OTOL, 4,
+                                      "Gaussians (opacity > 0)")
+            assert len(ia) > 100
+            for k in ("means", "quats", "scales", "opacities", "colors"):
+                np.testing.assert_allclose(getattr(g_l, k)[ib], getattr(g_t, k).numpy()[ia], rtol=1e-5, atol=1e-6,
+                                           err_msg=k)
 
 
 def test_default_cameras_without_stored_ones(tmp_path):
@@ -144,8 +187,7 @@ def test_default_cameras_without_stored_ones(tmp_path):
     assert got.cameras is None and want.cameras is None
     a, b = codec.default_cameras(want), lite.default_cameras(got)
     assert [c.to_json() for c in a] == [c.to_json() for c in b] and len(a) == 8
-    ia = want.render(a[1], 0.2, backend="cpu").image.numpy()
-    assert np.abs(ia - got.render(b[1], 0.2).image).max() < 1e-4
+    assert_renders_agree(want, got, a[1], 0.2)
 
 
 def test_network_layouts_are_the_torch_modules():
@@ -233,11 +275,11 @@ def test_cli_decode_uses_the_lite_path_and_its_errors_are_one_line(encoded, tmp_
     assert sorted(p.name for p in out.iterdir()) == ["view001_res0.300.png", "view001_res1.000.png"]
     from PIL import Image
 
-    model = codec.decode(path)
+    scene = lite.decode(path)  # what the CLI renders with; lite vs torch: test_images_match_the_cpu_backend
     for xi in (0.3, 1.0):
         png = np.asarray(Image.open(out / f"view001_res{xi:.3f}.png"))
-        want = image_to_uint8(model.render(model.cameras[1], xi, backend="cpu").image)
-        assert png.shape == want.shape and np.abs(png.astype(int) - want).max() <= 1
+        want = lite.image_to_uint8(scene.render(scene.cameras[1], xi).image)
+        assert png.dtype == want.dtype and png.tobytes() == want.tobytes()
     bad = tmp_path / "bad.pxc"
     bad.write_bytes(path.read_bytes()[:-5])
     for backend in ("auto", "cpu", "reference"):
@@ -267,3 +309,29 @@ print(json.dumps({{"runs": runs, "torch": "torch" in sys.modules, "lite": "proxy
     assert all(code == 0 for code, _ in got["runs"]), got["runs"]
     assert got["lite"] and not got["torch"], got
     assert (tmp_path / "view000_res0.300.png").exists()
+
+
+def test_rounding_sized_changes_pass_and_real_bugs_do_not(encoded):
+    """The comparison is immune to the rounding of another machine's kernels, not blind: the numpy decoder's weights
+    changed by 4e-6 relative (~30 float32 ulps, far more than BLAS kernels differ by) flip decisions near their
+    thresholds -- accepted, each explained -- while a colour off by a few thousandths, or a wrong background, fail."""
+    path, want, _ = encoded
+    got = lite.decode(path)  # a private copy: its weights are changed below
+    rng = np.random.default_rng(0)
+    d = got.decoder
+    for layers in (d.opacity, d.cov, d.color) + ((d.embedding,) if d.embedding else ()):
+        for w in (x for layer in layers for x in layer):
+            w[...] = w * (1 + 4e-6 * rng.uniform(-1, 1, w.shape)).astype(np.float32)
+    renders = [(cam, xi, want.render(cam, xi, backend="cpu")) for cam in want.cameras[:2] for xi in XIS]
+    for cam, xi, r_t in renders:  # on this machine: 1 to 3 pixels changed by a flip per variant, all explained
+        assert_renders_agree(want, got, cam, xi, r_t=r_t)
+    cam, xi, r_t = renders[-1]
+    b = d.color[1][1]
+    saved = b.copy()
+    b += np.float32(0.02)  # colour logits: colours off by <= 0.005
+    with pytest.raises(AssertionError, match="colors"):
+        assert_renders_agree(want, got, cam, xi, r_t=r_t)
+    b[...] = saved
+    got.background = tuple(np.asarray(got.background) + 1e-3)
+    with pytest.raises(AssertionError, match="no decision within"):
+        assert_renders_agree(want, got, cam, xi, r_t=r_t)
