@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import math
+from types import SimpleNamespace
 
+import flips
 import numpy as np
 import pytest
 import torch
@@ -60,26 +62,49 @@ def projected_inputs(proj, bg):
             proj.depths.detach(), proj.extent.detach(), bg]
 
 
-def run(fn, inputs, width, height, seed=123):
-    """Render, then backprop a random linear loss of image and alpha -> (image, alpha, grads)."""
+def run(fn, inputs, width, height, seed=123, skip=None):
+    """Render, then backprop a random linear loss of image and alpha -> (image, alpha, grads). ``skip``: bool [H, W],
+    pixels left out of the loss."""
     means, conics, op, colors, depths, extent, bg = inputs
     leaves = [t.clone().requires_grad_(True) for t in (means, conics, op, colors, bg)]
     img, alpha = fn(leaves[0], leaves[1], leaves[2], leaves[3], depths, extent, width, height, leaves[4])
     g = torch.Generator().manual_seed(seed)
     wi = torch.rand(img.shape, generator=g, dtype=torch.float64).to(img.dtype) - 0.3
     wa = torch.rand(alpha.shape, generator=g, dtype=torch.float64).to(img.dtype) - 0.3
+    if skip is not None:
+        keep = torch.from_numpy(~skip).to(img.dtype)
+        wi, wa = wi * keep[..., None], wa * keep
     ((img * wi).sum() + (alpha * wa).sum()).backward()
     return img.detach(), alpha.detach(), [t.grad for t in leaves]
 
 
+def near_threshold_pixels(inputs, width, height):
+    """bool [H, W]: pixels where a compositing decision (power <= 0, alpha >= 1/255, T >= 1e-4) lies within a
+    few ulps of its threshold. The two compositors make them with the same operations on the same inputs but
+    different ``exp`` (numba's libm, torch's SLEEF: which one depends on the machine), so only there can they differ
+    (issue #14); the depth order is the same stable sort of the same depths in both."""
+    means, conics, op, _, depths, _, _ = inputs
+    view = SimpleNamespace(means2d=means, conics=conics, opacities=op, depths=depths, width=width, height=height)
+    return flips.pixel_margins(view, _rtol(means.dtype)) < _rtol(means.dtype)
+
+
+def _rtol(dtype):
+    return 1e-5 if dtype == torch.float32 else 1e-12
+
+
 def assert_matches_reference(inputs, width, height, img_tol=IMG_TOL, grad_tol=GRAD_TOL):
-    img, alpha, grads = run(rasterize_cpu, inputs, width, height)
-    img_r, alpha_r, grads_r = run(rasterize_reference, inputs, width, height)
+    """Images and alpha equal to ``img_tol`` but at pixels whose decisions lie within rounding of a threshold (at
+    most a few: there the two may differ by a whole Gaussian); gradients of a loss that leaves those pixels out
+    equal to ``grad_tol`` (norm-wise)."""
+    near = near_threshold_pixels(inputs, width, height)
+    assert near.sum() <= 4, f"{near.sum()} pixels near a threshold: the case is not a fair test"
+    img, alpha, grads = run(rasterize_cpu, inputs, width, height, skip=near)
+    img_r, alpha_r, grads_r = run(rasterize_reference, inputs, width, height, skip=near)
     assert img.shape == img_r.shape and alpha.shape == alpha_r.shape
     assert img.dtype == img_r.dtype and alpha.dtype == alpha_r.dtype
     assert torch.isfinite(img).all() and torch.isfinite(alpha).all()
-    assert (img - img_r).abs().max().item() < img_tol
-    assert (alpha - alpha_r).abs().max().item() < img_tol
+    assert (img - img_r).abs().amax(-1).numpy()[~near].max(initial=0.0) < img_tol
+    assert (alpha - alpha_r).abs().numpy()[~near].max(initial=0.0) < img_tol
     for name, g, gr in zip(GRAD_NAMES, grads, grads_r):
         assert g is not None and g.shape == gr.shape, name
         assert torch.isfinite(g).all(), name
