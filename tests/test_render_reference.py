@@ -2,6 +2,7 @@
 
 import math
 
+import flips
 import numpy as np
 import pytest
 import torch
@@ -135,5 +136,8 @@ def test_far_from_the_origin_float32_matches_float64():
     m32 = (m + off).float()
     ref = project_gaussians(m32.double(), q, s, o, c, cam)
     p32 = project_gaussians(m32, q.float(), s.float(), o.float(), c.float(), cam)
-    assert torch.equal(p32.index, ref.index)
-    assert (p32.means2d.double() - ref.means2d).abs().max() < 1e-3  # pixels
+    # the same culls but for values within float32 rounding of a threshold (float32 vs float64: issue #14)
+    ia, ib = flips.match_rows(p32.index.numpy(), ref.index.numpy(), flips.cull_margins(p32), flips.cull_margins(ref),
+                              1e-5, 2, "culling decisions")
+    assert len(ia) > 100
+    assert (p32.means2d[ia].double() - ref.means2d[ib]).abs().max() < 1e-3  # pixels
