@@ -48,7 +48,7 @@ def match_rows(keys_a, keys_b, margin_a, margin_b, rtol: float, max_flips: int, 
     ``rtol`` of its threshold (``margin_*``), at most ``max_flips`` of them."""
     keys_a, keys_b = np.asarray(keys_a), np.asarray(keys_b)
     assert len(np.unique(keys_a)) == len(keys_a) and len(np.unique(keys_b)) == len(keys_b), what
-    common, ia, ib = np.intersect1d(keys_a, keys_b, assume_unique=True, return_indices=True)
+    _, ia, ib = np.intersect1d(keys_a, keys_b, assume_unique=True, return_indices=True)
     flips = 0
     for keys, other, margin, side in ((keys_a, keys_b, margin_a, "first"), (keys_b, keys_a, margin_b, "second")):
         only = np.flatnonzero(~np.isin(keys, other))
