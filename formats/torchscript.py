@@ -26,6 +26,7 @@ import io
 import math
 import os
 import pickle
+import pickletools
 import re
 import zipfile
 import zlib
@@ -122,7 +123,7 @@ class _Archive:
             self.zip = zipfile.ZipFile(path)
             infos = self.zip.infolist()
         except (zipfile.BadZipFile, zlib.error, EOFError, OSError, ValueError, IndexError, OverflowError,
-                UnicodeDecodeError) as e:
+                UnicodeDecodeError, NotImplementedError, RuntimeError) as e:
             raise ProxycodecError(f"not a PyTorch zip archive ({_short(e)})", path) from None
         if len(infos) > MAX_RECORDS:
             raise ProxycodecError(f"archive holds {len(infos)} records, more than {MAX_RECORDS}", path)
@@ -284,12 +285,30 @@ def _convert(obj, memo: dict[int, Any] | None = None, depth: int = 0):
     return out
 
 
+def _scan(data: bytes) -> None:
+    """Parse the pickle's opcodes without building anything (``pickletools.genops``) before the unpickler runs:
+    CPython's unpickler sizes its memo table by the largest index a PUT names, so a 10-byte pickle naming index 2^32
+    would make it allocate 32 GB. Memo indices must come in order (each PUT at most one past the previous ones), as
+    every pickler writes them."""
+    puts = 0
+    for op, arg, _ in pickletools.genops(data):
+        if op.name in ("PUT", "BINPUT", "LONG_BINPUT"):
+            if not isinstance(arg, int) or not 0 <= arg <= puts:
+                raise _Malformed(f"memo index {str(arg)[:20]} out of order")
+            puts = max(puts, arg + 1)
+        elif op.name == "MEMOIZE":
+            puts += 1
+        elif op.name == "STOP":
+            return
+
+
 def _load(path: str | os.PathLike, allow_script: bool):
     path = Path(path)
     archive = _Archive(path)
     try:
         data = archive.read(archive.prefix + "data.pkl", MAX_PICKLE_BYTES)
         try:
+            _scan(data)
             return _convert(_Unpickler(archive, data, allow_script).load())
         except ProxycodecError:
             raise

@@ -211,6 +211,8 @@ def read_scaffold_cameras(path: str | os.PathLike) -> list[Camera]:
             raise ProxycodecError(f"view {i} lacks {e.args[0]!r}", path) from None
         except (TypeError, ValueError, OverflowError):
             raise ProxycodecError(f"view {i}: position must be 3 numbers and rotation 3x3", path) from None
+        if not (1 <= w <= 1 << 20 and 1 <= h <= 1 << 20):  # COLMAP's reader's bound
+            raise ProxycodecError(f"view {i} has an implausible size {w}x{h}", path)
         if pos.shape != (3,) or rot.shape != (3, 3) or not (np.isfinite(pos).all() and np.isfinite(rot).all()):
             raise ProxycodecError(f"view {i}: position must be 3 finite numbers and rotation a finite 3x3", path)
         if abs(np.linalg.det(rot) - 1.0) > 1e-3 or not np.allclose(rot.T @ rot, np.eye(3), atol=1e-3):

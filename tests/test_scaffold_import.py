@@ -9,19 +9,17 @@ its source, run on the same in-memory modules.
 
 from __future__ import annotations
 
-import io
 import json
 import os
 import pickle
-import zipfile
 from argparse import Namespace
-from collections import OrderedDict
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 from click.testing import CliRunner
+from conftest import forged_tensor_pickle, os_system_pickle, replace_zip_record
 from torch import nn
 
 from proxycodec.camera import Camera
@@ -314,39 +312,8 @@ def test_cfg_args_is_parsed_without_eval(tmp_path):
 
 
 # ================================================================================================ refusals
-class Evil:
-    def __init__(self, marker):
-        self.marker = str(marker)
-
-    def __reduce__(self):
-        return os.system, (f"touch {self.marker}",)
-
-
-def _replace_record(path: Path, name_suffix: str, data: bytes) -> None:
-    with zipfile.ZipFile(path) as z:
-        items = [(i, z.read(i)) for i in z.infolist()]
-    with zipfile.ZipFile(path, "w") as z:
-        for info, b in items:
-            z.writestr(info, data if info.filename.endswith(name_suffix) else b)
-
-
-def _forged_tensor_pickle(shape, stride, numel=1120, key="0") -> bytes:
-    """A data.pkl holding one module whose weight is ``_rebuild_tensor_v2`` of a storage with a forged shape."""
-
-    class Storage:  # persistent_id -> ('storage', torch.FloatStorage, key, 'cpu', numel)
-        pass
-
-    class Tensor:
-        def __reduce__(self):
-            return torch._utils._rebuild_tensor_v2, (Storage(), 0, shape, stride, False, OrderedDict())
-
-    class P(pickle.Pickler):
-        def persistent_id(self, obj):
-            return ("storage", torch.FloatStorage, key, "cpu", numel) if isinstance(obj, Storage) else None
-
-    buf = io.BytesIO()
-    P(buf, protocol=2).dump({"weight": Tensor()})
-    return buf.getvalue()
+def _replace_record(path: Path, suffix: str, data: bytes) -> None:
+    path.write_bytes(replace_zip_record(path.read_bytes(), suffix, data))
 
 
 def test_malicious_pickles_are_refused_and_never_run(tmp_path):
@@ -354,7 +321,7 @@ def test_malicious_pickles_are_refused_and_never_run(tmp_path):
     # 1. a TorchScript archive whose data.pkl calls os.system
     root = write_output(tmp_path / "a", scaffold_mlps())
     it = root / "point_cloud" / "iteration_30000"
-    _replace_record(it / "opacity_mlp.pt", "/data.pkl", pickle.dumps(Evil(marker), protocol=2))
+    _replace_record(it / "opacity_mlp.pt", "/data.pkl", os_system_pickle(f"touch {marker}"))
     with pytest.raises(ProxycodecError, match=r"opacity_mlp\.pt: refused to load (posix|os)\.system"):
         load_scaffold_output(root)
     # the same through the CLI: one line, exit 2
@@ -363,11 +330,11 @@ def test_malicious_pickles_are_refused_and_never_run(tmp_path):
     # 2. a checkpoints.pth holding one
     root = write_output(tmp_path / "b", scaffold_mlps(), "unite")
     ck = root / "point_cloud" / "iteration_30000" / "checkpoints.pth"
-    torch.save({"opacity_mlp": Evil(marker), "cov_mlp": {}, "color_mlp": {}}, ck)
+    ck.write_bytes(replace_zip_record(ck.read_bytes(), "/data.pkl", os_system_pickle(f"touch {marker}")))
     with pytest.raises(ProxycodecError, match=r"checkpoints\.pth: refused to load"):
         load_scaffold_output(root)
     # 3. a __torch__ class called with arguments, a TorchScript pickle of a bare storage
-    bad = pickle.dumps(Evil(marker), protocol=2).replace(b"cposix\nsystem\n", b"c__torch__\nX\n")
+    bad = os_system_pickle(f"touch {marker}").replace(b"cposix\nsystem\n", b"c__torch__\nX\n")
     _replace_record(it / "opacity_mlp.pt", "/data.pkl", bad)
     with pytest.raises(ProxycodecError, match="malformed pickle"):
         read_torchscript(it / "opacity_mlp.pt")
@@ -386,13 +353,13 @@ def test_malicious_pickles_are_refused_and_never_run(tmp_path):
 def test_forged_shapes_do_not_allocate(shape, stride, numel, match, tmp_path):
     root = write_output(tmp_path / "out", scaffold_mlps())
     p = root / "point_cloud" / "iteration_30000" / "cov_mlp.pt"
-    _replace_record(p, "/data.pkl", _forged_tensor_pickle(shape, stride, numel))
+    _replace_record(p, "/data.pkl", forged_tensor_pickle(shape, stride, numel))
     with pytest.raises(ProxycodecError, match=match):
         read_torchscript(p)
     # the same forged pickle inside a torch.save file
     ck = tmp_path / "checkpoints.pth"
     torch.save({"0.weight": torch.zeros(32, 35)}, ck)
-    _replace_record(ck, "/data.pkl", _forged_tensor_pickle(shape, stride, numel))
+    _replace_record(ck, "/data.pkl", forged_tensor_pickle(shape, stride, numel))
     with pytest.raises(ProxycodecError, match=match):
         read_torch_checkpoint(ck)
 
