@@ -8,6 +8,11 @@ f_hat = (1 + gamma) f + beta, starts as the identity (last layer zero).
 
 Work follows the view: anchors whose bounding sphere misses the frustum never reach the MLPs, and the covariance and
 color MLPs only run for anchors with at least one Gaussian of positive opacity.
+
+An imported Scaffold-GS output (``scaffold_gs.py``) may use Scaffold-GS's variants, recorded in ``DecoderConfig``:
+MLPs without the distance input ([f_hat, d], F + 3 inputs; ``opacity_dist``/``cov_dist``/``color_dist``) and its
+feature bank (``feature_bank``: f_hat is blended with its stride-4 and stride-2 channels by softmax(MLP([d, delta])),
+after the FiLM embedding). The defaults are the decoder above.
 """
 
 from __future__ import annotations
@@ -161,7 +166,8 @@ def live_slots(
     """[M, K] bool: whether a neural Gaussian's opacity exceeds ``threshold`` from any viewpoint at any xi.
 
     The opacity MLP sees the embedded feature (which depends on xi only), the unit view direction and the
-    distance; the first layer is split so that only its 4 view columns are recomputed per viewpoint.
+    distance; the first layer is split so that only its 4 (3 without distance) view columns are recomputed per
+    viewpoint. With a feature bank the feature itself depends on the view and is recomputed too.
     """
     cfg = decoder.config
     M, K = positions.shape[0], cfg.n_offsets

@@ -14,7 +14,8 @@ backend), step by step:
   proxies (``nearest.py``), in the same chunks;
 - the view is decoded as ``model.decode_view`` does: frustum culling of the anchors' bounding spheres
   (``decoder.visible_anchors``), the resolution embedding (FiLM / additive / none, xi clamped to
-  ``film_xi_range``) and the opacity / covariance / colour MLPs (``GaussianDecoder.forward``);
+  ``film_xi_range``), an imported Scaffold-GS decoder's variants (feature bank, MLPs without the distance input)
+  and the opacity / covariance / colour MLPs (``GaussianDecoder.forward``);
 - projection (with the pixel coverage gate) and compositing call the very numba kernels behind the ``cpu`` backend
   (``render/_project_kernels.py``, ``render/_raster_kernels.py``) on numpy arrays.
 
