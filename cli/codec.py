@@ -64,7 +64,7 @@ def encode(scene, out, weights, proxy_ratio, proxy_selection, cell_size, feature
     from .. import codec
 
     p = Path(scene)
-    out = out or str(p.with_name(p.name + ".pxc") if p.is_dir() else p.with_suffix(".pxc"))
+    out = out or str(p.resolve().with_name(p.resolve().name + ".pxc") if p.is_dir() else p.with_suffix(".pxc"))
     source = (scene, weights) if weights else scene
     r = codec.encode(source, out, proxy_ratio=proxy_ratio, proxy_selection=proxy_selection, cell_size=cell_size,
                      feature_bits=feature_bits, offset_bits=offset_bits, scaling_bits=scaling_bits,

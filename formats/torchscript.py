@@ -107,6 +107,16 @@ class _Storage:
         self.array = array
 
 
+class _Tensor:
+    """A rebuilt tensor while unpickling (unwrapped by ``_convert``): no ``__setstate__``, no ``__dict__``, so the
+    pickle cannot BUILD, SETITEM or APPEND into the numpy array."""
+
+    __slots__ = ("array",)
+
+    def __init__(self, array: np.ndarray):
+        self.array = array
+
+
 class _Archive:
     """A zip archive as PyTorch writes it: one top-level folder holding ``data.pkl`` and ``data/<key>`` records."""
 
@@ -234,7 +244,7 @@ class _Unpickler(pickle.Unpickler):
         if numel == 0:
             if any(s > arr.size + 1 for s in size):
                 raise _Malformed(f"empty tensor of shape {size} is implausible")
-            return np.zeros(size, dtype=arr.dtype.newbyteorder("="))
+            return _Tensor(np.zeros(size, dtype=arr.dtype.newbyteorder("=")))
         last = offset + sum((s - 1) * st for s, st in zip(size, stride))
         if last >= arr.size or numel > arr.size:
             raise _Malformed(f"tensor of shape {tuple(size)} (offset {offset}, stride {tuple(stride)}) runs past "
@@ -244,7 +254,7 @@ class _Unpickler(pickle.Unpickler):
             raise _Malformed("the tensors add up to far more than the file holds")
         view = np.lib.stride_tricks.as_strided(arr[offset:], shape=size,
                                                strides=tuple(st * arr.dtype.itemsize for st in stride))
-        return np.array(view, dtype=arr.dtype.newbyteorder("="), copy=True)
+        return _Tensor(np.array(view, dtype=arr.dtype.newbyteorder("="), copy=True))
 
 
 def _int_tuple(t) -> bool:
@@ -252,7 +262,7 @@ def _int_tuple(t) -> bool:
 
 
 def _rebuild_parameter(data, requires_grad=False, hooks=None):
-    if not isinstance(data, np.ndarray):
+    if not isinstance(data, _Tensor):
         raise _Malformed("a parameter that is not a tensor")
     return data
 
@@ -278,6 +288,8 @@ def _convert(obj, memo: dict[int, Any] | None = None, depth: int = 0):
         out.extend(_convert(v, memo, depth + 1) for v in obj)
     elif isinstance(obj, tuple):
         out = memo[id(obj)] = tuple(_convert(v, memo, depth + 1) for v in obj)
+    elif isinstance(obj, _Tensor):
+        out = obj.array
     elif isinstance(obj, (_Storage, _StorageType)):
         raise _Malformed("a bare storage outside a tensor")
     else:

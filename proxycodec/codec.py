@@ -147,7 +147,7 @@ def _source_model(source) -> tuple[SceneModel, int | None, str, tuple]:
     elif isinstance(source, (str, os.PathLike)):
         if is_scaffold_output(source):  # a trained Scaffold-GS output: PLY + its MLP files (scaffold_gs.py)
             model = load_scaffold_output(source)
-            return model, model.meta["scaffold_gs"]["bytes"], str(source), (None, None)
+            return model, model.meta["scaffold_gs"]["bytes"], str(Path(source)), (None, None)
         ply, w = Path(source), weights_path_for(source)
     else:
         raise ProxycodecError(f"encode expects a SceneModel, a PLY path or (PLY, weights) paths, "
