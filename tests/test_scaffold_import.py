@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 import os
 import pickle
+import zipfile
 from argparse import Namespace
 from pathlib import Path
 
@@ -541,3 +542,19 @@ def test_live_slots_follow_the_variant(kw, tmp_path):
     got = live_slots(dec, s.positions, s.features, vps, xis, chunk=2)
     assert 0 < int(want.sum()) < want.numel()
     assert torch.equal(got, want)
+
+
+@pytest.mark.parametrize("mode", ["split", "unite"])
+def test_files_saved_from_a_gpu(mode, tmp_path):
+    """Scaffold-GS traces and saves its MLPs on CUDA: storages located at "cuda:0" load on a CPU-only machine."""
+    root = write_output(tmp_path / "out", scaffold_mlps(bank=True, appearance_dim=4), mode)
+    want = load_scaffold_output(root).decoder.state_arrays()
+    it = root / "point_cloud" / "iteration_30000"
+    for p in it.iterdir():
+        if p.suffix in (".pt", ".pth"):
+            with zipfile.ZipFile(p) as z:
+                pkl = z.read(next(n for n in z.namelist() if n.endswith("/data.pkl")))
+            assert b"X\x03\x00\x00\x00cpu" in pkl
+            _replace_record(p, "/data.pkl", pkl.replace(b"X\x03\x00\x00\x00cpu", b"X\x06\x00\x00\x00cuda:0"))
+    got = load_scaffold_output(root).decoder.state_arrays()
+    assert want.keys() == got.keys() and all(np.array_equal(want[k], got[k]) for k in want)
