@@ -21,9 +21,9 @@ def _stderr(msg: str) -> None:
 
 
 @click.command()
-@click.argument("scene", type=click.Path(dir_okay=False))
+@click.argument("scene", type=click.Path())
 @click.option("-o", "--out", "out", type=click.Path(dir_okay=False), default=None,
-              help="Output container (default: SCENE with suffix .pxc).")
+              help="Output container (default: SCENE with suffix .pxc; a folder: its name + .pxc beside it).")
 @click.option("--weights", type=click.Path(dir_okay=False), default=None,
               help="Decoder weights (default: SCENE.weights.pxc beside the PLY).")
 @encode_option("--proxy-ratio", show_default=True, type=float, help="rho: share of proxies per cell.")
@@ -55,14 +55,16 @@ def _stderr(msg: str) -> None:
 def encode(scene, out, weights, proxy_ratio, proxy_selection, cell_size, feature_bits, offset_bits, scaling_bits,
            weights_dtype, predict_offsets, max_cameras, drop_dead_offsets, predictor_iters, leaf_sample, zstd_level, seed,
            refit_predictor, as_json) -> None:
-    """Compress an anchor scene (Scaffold-GS PLY + weights sidecar) to a proxy-anchor container.
+    """Compress an anchor scene (Scaffold-GS PLY + weights sidecar, or a trained Scaffold-GS output: its folder or
+    its point_cloud.ply with the MLP files beside it) to a proxy-anchor container.
 
     The residual predictor is fitted here on the scene's own features (L_recon). A predictor trained jointly with
     the rendering loss comes from `proxycodec fit` (stage 2) and is used as it is when the scene carries one.
     """
     from .. import codec
 
-    out = out or str(Path(scene).with_suffix(".pxc"))
+    p = Path(scene)
+    out = out or str(p.resolve().with_name(p.resolve().name + ".pxc") if p.is_dir() else p.with_suffix(".pxc"))
     source = (scene, weights) if weights else scene
     r = codec.encode(source, out, proxy_ratio=proxy_ratio, proxy_selection=proxy_selection, cell_size=cell_size,
                      feature_bits=feature_bits, offset_bits=offset_bits, scaling_bits=scaling_bits,
@@ -172,11 +174,11 @@ def _decode_lite(container):
 
 
 @click.command()
-@click.argument("file", type=click.Path(dir_okay=False))
+@click.argument("file", type=click.Path())
 @click.option("--json", "as_json", is_flag=True, help="Everything as JSON (metadata included).")
 @user_errors
 def stats(file, as_json) -> None:
-    """Sizes and counts of a container or an anchor PLY."""
+    """Sizes and counts of a container, an anchor PLY or a Scaffold-GS output."""
     from .. import codec
 
     s = codec.stats(file)
@@ -184,9 +186,12 @@ def stats(file, as_json) -> None:
         click.echo(json.dumps(s, indent=2))
         return
     if s["type"] == "ply":
-        click.echo(f"{s['file']}: Scaffold-GS anchor PLY, {s['anchors']} anchors")
-        click.echo(f"  PLY {s['file_bytes']:,} B + weights {s['weights_bytes'] or 0:,} B = {s['total_bytes']:,} B "
-                   f"({s['bits_per_anchor']:.0f} bits/anchor)" if s["anchors"] else "  empty")
+        sg = s.get("scaffold_gs")
+        what = f"Scaffold-GS output ({sg['mode']} MLP files: {', '.join(sg['mlp_files'])})" if sg else \
+            "Scaffold-GS anchor PLY"
+        click.echo(f"{s['file']}: {what}, {s['anchors']} anchors")
+        click.echo(f"  PLY {s['file_bytes']:,} B + {'MLPs' if sg else 'weights'} {s['weights_bytes'] or 0:,} B = "
+                   f"{s['total_bytes']:,} B ({s['bits_per_anchor']:.0f} bits/anchor)" if s["anchors"] else "  empty")
         for k, v in s["raw_bytes_by_group"].items():
             click.echo(f"  {k:10s} {v:12,} B")
         return

@@ -25,7 +25,7 @@ def sample(out: str, seed: int) -> None:
 
 
 @click.command()
-@click.argument("scene", type=click.Path(dir_okay=False))
+@click.argument("scene", type=click.Path())
 @click.option("--res", "res", default="1.0,0.5,0.25,0.1", show_default=True,
               help="Comma-separated resolution ratios in [0.025, 2.0].")
 @click.option("-o", "--out", "out_dir", type=click.Path(file_okay=False), default="renders", show_default=True)
@@ -34,10 +34,12 @@ def sample(out: str, seed: int) -> None:
               type=click.Choice(["auto", "reference", "cpu", "cuda"]), help="Compositing backend.")
 @user_errors
 def render(scene: str, res: str, out_dir: str, views: tuple[int, ...], backend: str) -> None:
-    """Render an anchor scene (PLY + weights) at the given resolutions to PNG files."""
+    """Render an anchor scene (PLY + weights, or a trained Scaffold-GS output) at the given resolutions to PNG
+    files."""
     from ..model import SceneModel
+    from ..scaffold_gs import is_scaffold_output, load_scaffold_output
 
-    model = SceneModel.load(scene)
+    model = load_scaffold_output(scene) if is_scaffold_output(scene) else SceneModel.load(scene)
     render_views(model, parse_resolutions(res), Path(out_dir), list(views) or None, backend)
 
 

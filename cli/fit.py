@@ -150,7 +150,7 @@ def _fit_explicit(dataset, out, run: dict, max_width, seed, images, test_every, 
 
 
 @click.command("eval")
-@click.argument("scene", type=click.Path(dir_okay=False))
+@click.argument("scene", type=click.Path())
 @click.argument("dataset", type=click.Path(file_okay=False))
 @click.option("-o", "--out", "out_dir", type=click.Path(file_okay=False), default=None,
               help="Report folder [default: SCENE's name + '_eval'].")

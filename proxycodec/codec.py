@@ -31,6 +31,7 @@ from .formats.container import (
     MAGIC, ContainerError, SectionInfo, read_container, read_header, write_container,
 )
 from .model import SceneModel, SceneRender, weights_path_for
+from .scaffold_gs import find_scaffold_files, is_scaffold_output, load_scaffold_output
 from .proxy import (
     PredictorConfig, ResidualPredictor, TrainConfig, TrainResult, default_cell_size, nearest_proxies,
     check_proxy_selection, load_fitted_predictor, select_proxies, torch_threads, train_predictor,
@@ -144,6 +145,9 @@ def _source_model(source) -> tuple[SceneModel, int | None, str, tuple]:
     if isinstance(source, (tuple, list)) and len(source) == 2:
         ply, w = (Path(x) for x in source)
     elif isinstance(source, (str, os.PathLike)):
+        if is_scaffold_output(source):  # a trained Scaffold-GS output: PLY + its MLP files (scaffold_gs.py)
+            model = load_scaffold_output(source)
+            return model, model.meta["scaffold_gs"]["bytes"], str(Path(source)), (None, None)
         ply, w = Path(source), weights_path_for(source)
     else:
         raise ProxycodecError(f"encode expects a SceneModel, a PLY path or (PLY, weights) paths, "
@@ -448,8 +452,11 @@ def _model_from_sections_unchecked(meta: dict, sections: dict[str, np.ndarray], 
 
 # ---------------------------------------------------------------------------------------------- stats
 def stats(path: str | os.PathLike) -> dict:
-    """Sizes and counts of a scene container, any proxycodec container, or an anchor PLY."""
+    """Sizes and counts of a scene container, any proxycodec container, an anchor PLY or a Scaffold-GS output."""
     path = Path(path)
+    scaffold = find_scaffold_files(path)
+    if scaffold is not None:  # its PLY, with the MLP files as the weights
+        return _ply_stats(scaffold.ply, scaffold.mlp_files(), scaffold.mode)
     try:
         head = path.open("rb").read(len(MAGIC))
     except FileNotFoundError:
@@ -500,7 +507,7 @@ def _scene_stats(meta: dict, infos, size: int) -> dict:
     }
 
 
-def _ply_stats(path: Path) -> dict:
+def _ply_stats(path: Path, scaffold_mlps: list[Path] | None = None, scaffold_mode: str | None = None) -> dict:
     from .formats.ply import read_ply_header
 
     header = read_ply_header(path)
@@ -508,6 +515,8 @@ def _ply_stats(path: Path) -> dict:
     size = path.stat().st_size
     w = weights_path_for(path)
     wbytes = w.stat().st_size if w.exists() else None
+    if scaffold_mlps is not None:  # a Scaffold-GS output: its MLP files are the weights
+        w, wbytes = path.parent, sum(p.stat().st_size for p in scaffold_mlps)
     M = int(header.count)
     groups = {"positions": ("x", "y", "z"), "offsets": ("f_offset_",), "features": ("f_anchor_feat_",),
               "scalings": ("scale_",), "unused": ("nx", "ny", "nz", "opacity", "rot_")}
@@ -517,9 +526,12 @@ def _ply_stats(path: Path) -> dict:
         by_group[g] = M * sum(itemsize[n] for n in names if any(n == p or (p.endswith("_") and n.startswith(p))
                                                                  for p in prefixes))
     total = size + (wbytes or 0)
-    return {"file": str(path), "type": "ply", "anchors": M, "file_bytes": size, "weights_file": str(w),
-            "weights_bytes": wbytes, "total_bytes": total, "bits_per_anchor": 8.0 * total / M if M else None,
-            "raw_bytes_by_group": by_group, "properties": len(names)}
+    out = {"file": str(path), "type": "ply", "anchors": M, "file_bytes": size, "weights_file": str(w),
+           "weights_bytes": wbytes, "total_bytes": total, "bits_per_anchor": 8.0 * total / M if M else None,
+           "raw_bytes_by_group": by_group, "properties": len(names)}
+    if scaffold_mlps is not None:
+        out["scaffold_gs"] = {"mode": scaffold_mode, "mlp_files": [p.name for p in scaffold_mlps]}
+    return out
 
 
 # ---------------------------------------------------------------------------------------------- rendering

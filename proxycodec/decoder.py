@@ -8,6 +8,11 @@ f_hat = (1 + gamma) f + beta, starts as the identity (last layer zero).
 
 Work follows the view: anchors whose bounding sphere misses the frustum never reach the MLPs, and the covariance and
 color MLPs only run for anchors with at least one Gaussian of positive opacity.
+
+An imported Scaffold-GS output (``scaffold_gs.py``) may use Scaffold-GS's variants, recorded in ``DecoderConfig``:
+MLPs without the distance input ([f_hat, d], F + 3 inputs; ``opacity_dist``/``cov_dist``/``color_dist``) and its
+feature bank (``feature_bank``: f_hat is blended with its stride-4 and stride-2 channels by softmax(MLP([d, delta])),
+after the FiLM embedding). The defaults are the decoder above.
 """
 
 from __future__ import annotations
@@ -63,16 +68,18 @@ class GaussianDecoder(nn.Module):
         super().__init__()
         self.config = config
         F, K, h = config.feat_dim, config.n_offsets, config.hidden
-        n_in = F + 4
-        self.mlp_opacity = _mlp(n_in, h, K)
-        self.mlp_cov = _mlp(n_in, h, 7 * K)
-        self.mlp_color = _mlp(n_in, h, 3 * K)
+        n_in = config.mlp_inputs()  # F + 4, or F + 3 for a Scaffold-GS MLP without the distance
+        self.mlp_opacity = _mlp(n_in["mlp_opacity"], h, K)
+        self.mlp_cov = _mlp(n_in["mlp_cov"], h, 7 * K)
+        self.mlp_color = _mlp(n_in["mlp_color"], h, 3 * K)
         if config.embedding != "none":
             n_pe = 3 * (1 + 2 * config.pe_pos_freqs) + (1 + 2 * config.pe_res_freqs)
             n_out = 2 * F if config.embedding == "film" else F
             self.mlp_embed = _mlp(n_pe, config.film_hidden, n_out)
             nn.init.zeros_(self.mlp_embed[2].weight)
             nn.init.zeros_(self.mlp_embed[2].bias)
+        if config.feature_bank:  # Scaffold-GS's use_feat_bank: [d, delta] -> 3 blend weights (softmax)
+            self.mlp_feature_bank = _mlp(4, config.feature_bank, 3)
 
     # -------------------------------------------------------------- resolution embedding
     def embed(self, positions: torch.Tensor, features: torch.Tensor, xi: float) -> torch.Tensor:
@@ -91,6 +98,13 @@ class GaussianDecoder(nn.Module):
         gamma, beta = out.split(cfg.feat_dim, dim=-1)
         return (1.0 + gamma) * features + beta
 
+    def feature_bank(self, features: torch.Tensor, direction: torch.Tensor, dist: torch.Tensor) -> torch.Tensor:
+        """Scaffold-GS's feature bank (``use_feat_bank``): w = softmax(MLP([d, delta])), f' = w0 tile(f[::4], 4) +
+        w1 tile(f[::2], 2) + w2 f, in its order of operations."""
+        w = torch.softmax(self.mlp_feature_bank(torch.cat([direction, dist], -1)), dim=1)  # [M, 3]
+        return (features[:, ::4].repeat(1, 4) * w[:, :1] + features[:, ::2].repeat(1, 2) * w[:, 1:2]
+                + features * w[:, 2:])
+
     # -------------------------------------------------------------- anchors -> Gaussians
     def forward(
         self,
@@ -101,20 +115,24 @@ class GaussianDecoder(nn.Module):
         camera_center: torch.Tensor,  # [3]
         xi: float,
     ) -> NeuralGaussians:
-        K = self.config.n_offsets
+        cfg = self.config
+        K = cfg.n_offsets
         f_hat = self.embed(positions, features, xi)
         view = positions - camera_center
         dist = view.norm(dim=1, keepdim=True)
-        x = torch.cat([f_hat, view / dist.clamp_min(1e-12), dist], -1)
+        direction = view / dist.clamp_min(1e-12)
+        if cfg.feature_bank:
+            f_hat = self.feature_bank(f_hat, direction, dist)
+        x = torch.cat([f_hat, direction, dist], -1)
 
-        opacity = torch.tanh(self.mlp_opacity(x))  # [M, K]
+        opacity = torch.tanh(self.mlp_opacity(x if cfg.opacity_dist else x[:, :-1]))  # [M, K]
         with torch.no_grad():
             mask = opacity > 0
             live = mask.any(1).nonzero().squeeze(1)
         # Covariance and color only for anchors with at least one surviving Gaussian.
         x, opacity, mask = x[live], opacity[live], mask[live]
-        cov = self.mlp_cov(x).reshape(-1, K, 7)
-        color = torch.sigmoid(self.mlp_color(x)).reshape(-1, K, 3)
+        cov = self.mlp_cov(x if cfg.cov_dist else x[:, :-1]).reshape(-1, K, 7)
+        color = torch.sigmoid(self.mlp_color(x if cfg.color_dist else x[:, :-1])).reshape(-1, K, 3)
         sc = torch.exp(scalings[live])  # [m, 6]
         scales = sc[:, None, 3:] * torch.sigmoid(cov[..., :3])
         # Centres relative to the camera (float32 keeps its precision far from the world origin).
@@ -148,24 +166,37 @@ def live_slots(
     """[M, K] bool: whether a neural Gaussian's opacity exceeds ``threshold`` from any viewpoint at any xi.
 
     The opacity MLP sees the embedded feature (which depends on xi only), the unit view direction and the
-    distance; the first layer is split so that only its 4 view columns are recomputed per viewpoint.
+    distance; the first layer is split so that only its 4 (3 without distance) view columns are recomputed per
+    viewpoint. With a feature bank the feature itself depends on the view and is recomputed too.
     """
-    M, K = positions.shape[0], decoder.config.n_offsets
+    cfg = decoder.config
+    M, K = positions.shape[0], cfg.n_offsets
     live = torch.zeros(M, K, dtype=torch.bool)
     if M == 0 or viewpoints.shape[0] == 0:
         return live
     lin1, lin2 = decoder.mlp_opacity[0], decoder.mlp_opacity[2]
     F = features.shape[1]
-    w_f, w_v = lin1.weight[:, :F], lin1.weight[:, F:]  # [h, F], [h, 4]
+    n_view = 4 if cfg.opacity_dist else 3  # direction (+ distance)
+    w_f, w_v = lin1.weight[:, :F], lin1.weight[:, F:F + n_view]  # [h, F], [h, 4 or 3]
     pos = positions.to(lin1.weight.dtype)
+    if cfg.feature_bank:  # features per (viewpoint, anchor): fewer viewpoints at a time
+        chunk = max(1, min(chunk, (1 << 20) // M))
     for xi in xis:
-        base = decoder.embed(pos, features.to(pos.dtype), float(xi)) @ w_f.T + lin1.bias  # [M, h]
+        f_hat = decoder.embed(pos, features.to(pos.dtype), float(xi))
+        base = f_hat @ w_f.T + lin1.bias  # [M, h]
         for v0 in range(0, viewpoints.shape[0], chunk):
             vp = viewpoints[v0:v0 + chunk].to(pos.dtype)  # [c, 3]
             view = pos[None] - vp[:, None]  # [c, M, 3]
             dist = view.norm(dim=-1, keepdim=True)
-            x = torch.cat([view / dist.clamp_min(1e-12), dist], -1) @ w_v.T  # [c, M, h]
-            o = torch.tanh(torch.relu(base[None] + x) @ lin2.weight.T + lin2.bias)  # [c, M, K]
+            d = torch.cat([view / dist.clamp_min(1e-12), dist], -1)  # [c, M, 4]
+            x = d[..., :n_view] @ w_v.T  # [c, M, h]
+            if cfg.feature_bank:  # the feature itself depends on the view: no shared base
+                c = d.shape[0]
+                fb = decoder.feature_bank(f_hat.repeat(c, 1), d[..., :3].reshape(-1, 3), d[..., 3:].reshape(-1, 1))
+                x = x + (fb @ w_f.T).reshape(c, M, -1) + lin1.bias
+            else:
+                x = base[None] + x
+            o = torch.tanh(torch.relu(x) @ lin2.weight.T + lin2.bias)  # [c, M, K]
             live |= (o > threshold).any(0)
     return live
 

@@ -14,7 +14,8 @@ backend), step by step:
   proxies (``nearest.py``), in the same chunks;
 - the view is decoded as ``model.decode_view`` does: frustum culling of the anchors' bounding spheres
   (``decoder.visible_anchors``), the resolution embedding (FiLM / additive / none, xi clamped to
-  ``film_xi_range``) and the opacity / covariance / colour MLPs (``GaussianDecoder.forward``);
+  ``film_xi_range``), an imported Scaffold-GS decoder's variants (feature bank, MLPs without the distance input)
+  and the opacity / covariance / colour MLPs (``GaussianDecoder.forward``);
 - projection (with the pixel coverage gate) and compositing call the very numba kernels behind the ``cpu`` backend
   (``render/_project_kernels.py``, ``render/_raster_kernels.py``) on numpy arrays.
 
@@ -95,6 +96,12 @@ def _sigmoid(x: np.ndarray) -> np.ndarray:
     return _F32(1.0) / (_F32(1.0) + np.exp(-x))
 
 
+def _softmax(x: np.ndarray) -> np.ndarray:
+    """torch.softmax(x, dim=1)."""
+    e = np.exp(x - x.max(1, keepdims=True))
+    return e / e.sum(1, keepdims=True)
+
+
 def _mlp(x: np.ndarray, layers) -> np.ndarray:
     """``decoder._mlp``: Linear, ReLU, Linear."""
     return _linear(_relu(_linear(x, layers[0])), layers[1])
@@ -138,14 +145,18 @@ def predictor_shapes(cfg: PredictorConfig) -> dict[str, tuple[int, ...]]:
 def decoder_shapes(cfg: DecoderConfig) -> dict[str, tuple[int, ...]]:
     """The state_dict layout of ``decoder.GaussianDecoder(cfg)``: names and shapes, in its order."""
     F, K, h = cfg.feat_dim, cfg.n_offsets, cfg.hidden
+    n_in = cfg.mlp_inputs()
     out: dict[str, tuple[int, ...]] = {}
     for name, n_out in (("mlp_opacity", K), ("mlp_cov", 7 * K), ("mlp_color", 3 * K)):
-        out.update(_linear_shapes(f"{name}.0", F + 4, h))
+        out.update(_linear_shapes(f"{name}.0", n_in[name], h))
         out.update(_linear_shapes(f"{name}.2", h, n_out))
     if cfg.embedding != "none":
         n_pe = 3 * (1 + 2 * cfg.pe_pos_freqs) + (1 + 2 * cfg.pe_res_freqs)
         out.update(_linear_shapes("mlp_embed.0", n_pe, cfg.film_hidden))
         out.update(_linear_shapes("mlp_embed.2", cfg.film_hidden, 2 * F if cfg.embedding == "film" else F))
+    if cfg.feature_bank:
+        out.update(_linear_shapes("mlp_feature_bank.0", 4, cfg.feature_bank))
+        out.update(_linear_shapes("mlp_feature_bank.2", cfg.feature_bank, 3))
     return out
 
 
@@ -214,6 +225,8 @@ class Decoder:
         self.cov = (_layer(w, "mlp_cov.0"), _layer(w, "mlp_cov.2"))
         self.color = (_layer(w, "mlp_color.0"), _layer(w, "mlp_color.2"))
         self.embedding = (_layer(w, "mlp_embed.0"), _layer(w, "mlp_embed.2")) if config.embedding != "none" else None
+        self.bank = (_layer(w, "mlp_feature_bank.0"), _layer(w, "mlp_feature_bank.2")) if config.feature_bank \
+            else None
 
     def embed(self, positions: np.ndarray, features: np.ndarray, xi: float) -> np.ndarray:
         """``GaussianDecoder.embed``: f_hat = (1 + gamma) f + beta (FiLM), f + beta (additive) or f (none)."""
@@ -235,17 +248,23 @@ class Decoder:
     def __call__(self, positions, features, offsets, scalings, camera_center: np.ndarray, xi: float) -> Gaussians:
         """``GaussianDecoder.forward``: Gaussians of positive opacity; covariance and colour only for anchors with
         at least one."""
-        K = self.config.n_offsets
+        cfg = self.config
+        K = cfg.n_offsets
         f_hat = self.embed(positions, features, xi)
         view = positions - camera_center
         dist = _norm(view)
-        x = np.concatenate([f_hat, view / np.maximum(dist, _F32(1e-12)), dist], -1)
-        opacity = np.tanh(_mlp(x, self.opacity))  # [M, K]
+        direction = view / np.maximum(dist, _F32(1e-12))
+        if self.bank is not None:  # ``GaussianDecoder.feature_bank``
+            w = _softmax(_mlp(np.concatenate([direction, dist], -1), self.bank))
+            f_hat = (np.tile(f_hat[:, ::4], (1, 4)) * w[:, :1] + np.tile(f_hat[:, ::2], (1, 2)) * w[:, 1:2]
+                     + f_hat * w[:, 2:])
+        x = np.concatenate([f_hat, direction, dist], -1)
+        opacity = np.tanh(_mlp(x if cfg.opacity_dist else x[:, :-1], self.opacity))  # [M, K]
         mask = opacity > 0
         live = np.flatnonzero(mask.any(1))
         x, opacity, mask = x[live], opacity[live], mask[live]
-        cov = _mlp(x, self.cov).reshape(-1, K, 7)
-        color = _sigmoid(_mlp(x, self.color)).reshape(-1, K, 3)
+        cov = _mlp(x if cfg.cov_dist else x[:, :-1], self.cov).reshape(-1, K, 7)
+        color = _sigmoid(_mlp(x if cfg.color_dist else x[:, :-1], self.color)).reshape(-1, K, 3)
         sc = np.exp(scalings[live])  # [m, 6]
         scales = sc[:, None, 3:] * _sigmoid(cov[..., :3])
         means = view[live][:, None, :] + offsets[live] * sc[:, None, :3]

@@ -146,8 +146,9 @@ class SceneModel:
         ply = read_scaffold_ply(ply_path)  # the anchors' own problems first
         wpath = Path(weights_path) if weights_path else weights_path_for(ply_path)
         if not wpath.exists():
-            raise ProxycodecError(f"no decoder weights beside the anchor PLY (expected {wpath.name}); "
-                                  "Scaffold-GS's TorchScript MLPs are not loaded for safety", ply_path)
+            raise ProxycodecError(f"no decoder weights beside the anchor PLY (expected {wpath.name}, or "
+                                  "Scaffold-GS's opacity_mlp.pt/cov_mlp.pt/color_mlp.pt or checkpoints.pth)",
+                                  ply_path)
         c = read_container(wpath)
         if c.meta.get("kind") != WEIGHTS_KIND:
             raise ProxycodecError(f"not a weights file (kind {c.meta.get('kind')!r})", wpath)

@@ -13,6 +13,8 @@ from .errors import ProxycodecError
 from .render.project import GateConfig
 
 EMBEDDINGS = ("film", "additive", "none")
+#: ``DecoderConfig`` fields that describe a Scaffold-GS decoder variant (absent from JSON when at their default).
+VARIANT_FIELDS = ("opacity_dist", "cov_dist", "color_dist", "feature_bank")
 
 
 @dataclass(frozen=True)
@@ -30,6 +32,16 @@ class DecoderConfig:
     #: instead of extrapolating (measured on lego: +1.2..2.6 dB at 2.5-7.5%, +0.4..2.5 dB at 120-150%).
     film_xi_range: tuple[float, float] = (0.1, 1.0)
     gate: GateConfig = field(default_factory=GateConfig)
+    # Scaffold-GS's decoder variants (an imported Scaffold-GS output, ``proxycodec.scaffold_gs``); the defaults are
+    # ours, and ``to_json`` leaves them out when they hold their default, so containers without them read the same.
+    #: Whether the opacity / covariance / colour MLP sees the view distance (Scaffold-GS's ``add_*_dist``): its
+    #: input is [f_hat, d, delta] (F + 4) or [f_hat, d] (F + 3).
+    opacity_dist: bool = True
+    cov_dist: bool = True
+    color_dist: bool = True
+    #: Hidden width of Scaffold-GS's feature bank (``use_feat_bank``: softmax(MLP([d, delta])) blends the feature
+    #: with its channels at strides 4 and 2 tiled to F); 0: no feature bank.
+    feature_bank: int = 0
 
     def __post_init__(self) -> None:
         if self.embedding not in EMBEDDINGS:
@@ -49,11 +61,34 @@ class DecoderConfig:
         lo, hi = (float(v) for v in self.film_xi_range) if len(self.film_xi_range) == 2 else (math.nan, math.nan)
         if not (0.025 <= lo <= hi <= 2.0):
             raise ProxycodecError(f"film_xi_range must be [lo, hi] within [0.025, 2], got {self.film_xi_range!r}")
+        for k in ("opacity_dist", "cov_dist", "color_dist"):
+            if not isinstance(getattr(self, k), bool):
+                raise ProxycodecError(f"decoder {k} must be true or false, got {getattr(self, k)!r}")
+        if isinstance(self.feature_bank, bool) or not isinstance(self.feature_bank, int) \
+                or not 0 <= self.feature_bank <= 4096:
+            raise ProxycodecError(f"decoder feature_bank = {self.feature_bank!r} is out of range (0..4096)")
+        if self.feature_bank and self.feat_dim % 4:
+            raise ProxycodecError(f"a feature bank needs a feature width divisible by 4, got {self.feat_dim}")
+
+    def mlp_inputs(self) -> dict[str, int]:
+        """Input width of the opacity / covariance / colour MLPs (by module name): F + 3 view direction + 1 distance
+        where the MLP sees it."""
+        F = self.feat_dim
+        return {"mlp_opacity": F + 3 + self.opacity_dist, "mlp_cov": F + 3 + self.cov_dist,
+                "mlp_color": F + 3 + self.color_dist}
+
+    def variant(self) -> dict:
+        """The Scaffold-GS variant fields that differ from ours (empty for our own decoder)."""
+        return {k: getattr(self, k) for k in VARIANT_FIELDS
+                if getattr(self, k) != DecoderConfig.__dataclass_fields__[k].default}
 
     def to_json(self) -> dict:
         d = asdict(self)
         d["scene_center"] = list(self.scene_center)
         d["gate"] = self.gate.to_json()
+        for k in VARIANT_FIELDS:  # only where they differ: our own configurations keep their bytes
+            if k not in self.variant():
+                del d[k]
         return d
 
     @staticmethod

@@ -6,13 +6,17 @@ import os
 
 
 def load_any(path: str | os.PathLike):
-    """An anchor PLY (+ weights sidecar) as a ``SceneModel``, an INRIA 3DGS PLY (``fit --explicit``, other 3DGS
-    trainers) as an ``ExplicitModel`` (rendered as plain 3DGS) or a proxycodec container decoded to a
-    ``SceneModel`` (leaves regenerated)."""
+    """An anchor PLY (+ weights sidecar) as a ``SceneModel``, a trained Scaffold-GS output (its folder, or its PLY
+    with the MLP files beside it: ``scaffold_gs.load_scaffold_output``) as a ``SceneModel``, an INRIA 3DGS PLY
+    (``fit --explicit``, other 3DGS trainers) as an ``ExplicitModel`` (rendered as plain 3DGS) or a proxycodec
+    container decoded to a ``SceneModel`` (leaves regenerated)."""
     from .explicit import ExplicitModel, is_inria_ply
     from .formats.container import MAGIC
     from .model import SceneModel
+    from .scaffold_gs import is_scaffold_output, load_scaffold_output
 
+    if is_scaffold_output(path):
+        return load_scaffold_output(path)
     try:
         with open(path, "rb") as fh:
             head = fh.read(len(MAGIC))

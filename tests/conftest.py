@@ -71,3 +71,55 @@ def write_blender(root: Path, splits: dict, render) -> Path:
             frames.append({"file_path": f"./{split}/r_{k}", "transform_matrix": c2w.tolist()})
         (root / f"transforms_{split}.json").write_text(json.dumps({"camera_angle_x": fov, "frames": frames}))
     return root
+
+
+# ------------------------------------------------------------------------------ hostile PyTorch files
+def replace_zip_record(data: bytes, suffix: str, new: bytes) -> bytes:
+    """A zip archive (``data``) with the record whose name ends with ``suffix`` replaced by ``new``."""
+    import io
+    import zipfile
+
+    with zipfile.ZipFile(io.BytesIO(data)) as z:
+        items = [(i, z.read(i)) for i in z.infolist()]
+    out = io.BytesIO()
+    with zipfile.ZipFile(out, "w") as z:
+        for info, b in items:
+            z.writestr(info, new if info.filename.endswith(suffix) else b)
+    return out.getvalue()
+
+
+def os_system_pickle(command: str) -> bytes:
+    """A pickle whose loading calls ``os.system(command)`` (what a restricted unpickler must refuse)."""
+    import os
+    import pickle
+
+    class Evil:
+        def __reduce__(self):
+            return os.system, (command,)
+
+    return pickle.dumps(Evil(), protocol=2)
+
+
+def forged_tensor_pickle(shape, stride, numel: int, key: str = "0") -> bytes:
+    """A ``data.pkl`` of ``{"weight": tensor}`` whose tensor is ``_rebuild_tensor_v2`` over storage ``key`` (declared
+    ``numel`` float32 elements) with the given (forged) shape and stride, pickled as torch pickles one."""
+    import io
+    import pickle
+    from collections import OrderedDict
+
+    import torch
+
+    class Storage:
+        pass
+
+    class Tensor:
+        def __reduce__(self):
+            return torch._utils._rebuild_tensor_v2, (Storage(), 0, tuple(shape), tuple(stride), False, OrderedDict())
+
+    class Pickler(pickle.Pickler):
+        def persistent_id(self, obj):
+            return ("storage", torch.FloatStorage, key, "cpu", numel) if isinstance(obj, Storage) else None
+
+    buf = io.BytesIO()
+    Pickler(buf, protocol=2).dump({"weight": Tensor()})
+    return buf.getvalue()

@@ -32,8 +32,10 @@ from proxycodec.formats.blender import load_blender
 from proxycodec.formats.inria_ply import GaussianPly, read_inria_ply, write_inria_ply
 from proxycodec.formats.ply import encode_ply, read_ply, read_ply_header
 from proxycodec.formats.scaffold_ply import ScaffoldPly, read_scaffold_ply, write_scaffold_ply
+from proxycodec.formats.torchscript import read_torch_checkpoint, read_torchscript
 
 from proxycodec.errors import ProxycodecError
+from proxycodec.scaffold_gs import read_cfg_args, read_scaffold_cameras
 
 CORPUS = Path(__file__).resolve().parent / "corpus"
 
@@ -121,11 +123,38 @@ def _container_seed() -> bytes:
         return (Path(d) / "c.pxc").read_bytes()
 
 
+def _torch_seeds() -> dict[str, bytes]:
+    """What Scaffold-GS writes beside its PLY: a TorchScript archive (``torch.jit.trace(mlp, x).save``), a
+    ``torch.save`` of state dicts, ``cfg_args`` (``str(Namespace(...))``) and 3DGS's ``cameras.json``."""
+    import warnings
+    from argparse import Namespace
+
+    import torch
+    from torch import nn
+
+    with torch.random.fork_rng(), tempfile.TemporaryDirectory() as d, warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        torch.manual_seed(0)
+        m = nn.Sequential(nn.Linear(5, 4), nn.ReLU(True), nn.Linear(4, 2), nn.Tanh()).eval()
+        torch.jit.trace(m, (torch.rand(1, 5),)).save(str(Path(d) / "m.pt"))
+        torch.save({"opacity_mlp": m.state_dict()}, Path(d) / "c.pth")
+        out = {"torchscript": (Path(d) / "m.pt").read_bytes(), "torch_checkpoint": (Path(d) / "c.pth").read_bytes()}
+    out["cfg_args"] = str(Namespace(sh_degree=3, feat_dim=32, n_offsets=10, voxel_size=0.001, use_feat_bank=False,
+                                    source_path="/data/x", model_path="out/x", white_background=True, eval=True,
+                                    appearance_dim=0, add_opacity_dist=False, ratio=1)).encode()
+    out["scaffold_cameras"] = json.dumps([
+        {"id": 0, "img_name": "r_0", "width": 16, "height": 12, "position": [0.0, -4.0, 0.5],
+         "rotation": [[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]], "fy": 14.0, "fx": 14.5},
+        {"id": 1, "img_name": "r_1", "width": 16, "height": 12, "position": [4.0, 0.0, 0.0],
+         "rotation": [[0.0, 0.0, -1.0], [1.0, 0.0, 0.0], [0.0, -1.0, 0.0]], "fy": 14.0, "fx": 14.0}]).encode()
+    return out
+
+
 def make_seeds() -> dict[str, bytes]:
     """Valid seed files, keyed by the name of the reader that reads them (see :data:`READERS`)."""
     s = {**_generic_ply_seeds(), "scaffold_ply": _scaffold_seed(), "inria_ply": _inria_seed(),
          **_colmap_bin_seeds(), **_colmap_txt_seeds(), "blender_json": _blender_seed(),
-         "container": _container_seed()}
+         "container": _container_seed(), **_torch_seeds()}
     s["container_header"] = s["container"]
     s["ply_header"] = s["ply_le"]
     return s
@@ -158,6 +187,8 @@ READERS: dict[str, Callable[[Path], object]] = {
     "points3d_txt": colmap.read_points3d_txt,
     "blender_json": _blender_reader,
     "container": container.read_container, "container_header": container.read_header,
+    "torchscript": read_torchscript, "torch_checkpoint": read_torch_checkpoint,
+    "cfg_args": read_cfg_args, "scaffold_cameras": read_scaffold_cameras,
 }
 
 OK, OURS, BUG = "accepted", "our_error", "bug"
@@ -339,7 +370,8 @@ def test_corpus_is_small_and_covers_every_reader():
     assert sum(p.stat().st_size for p in files) < 200_000
     assert {p.parent.name for p in files} >= {"ply_le", "scaffold_ply", "inria_ply", "cameras_bin", "images_bin",
                                                "points3d_bin", "cameras_txt", "images_txt", "points3d_txt",
-                                               "blender_json", "container"}
+                                               "blender_json", "container", "torchscript", "torch_checkpoint",
+                                               "cfg_args", "scaffold_cameras"}
 
 
 # ------------------------------------------------------------------------------ structure-aware container forging
@@ -502,16 +534,35 @@ for name, reader in (("points3D.bin", colmap.read_points3d_bin), ("images.bin", 
 p = d / "track.bin"
 p.write_bytes(struct.pack("<Q", 1) + struct.pack("<Q3d3BdQ", 1, 0, 0, 0, 1, 2, 3, 0.5, 10**9) + bytes(900))
 probe("colmap_1e9_track", p, colmap.read_points3d_bin)
+# 4. PyTorch archives whose pickle declares a 1e12-element storage, or a 1e12-element view of 4 floats
+import zipfile
+from conftest import forged_tensor_pickle
+from proxycodec.formats.torchscript import read_torch_checkpoint, read_torchscript
+for name, shape, stride, numel, reader in (
+        ("torchscript_storage_1e12", (2, 2), (2, 1), 10**12, read_torchscript),
+        ("torchscript_view_1e12", (10**6, 10**6), (0, 0), 4, read_torchscript),
+        ("checkpoint_view_1e12", (10**6, 10**6), (0, 0), 4, read_torch_checkpoint)):
+    p = d / f"{name}.pt"
+    with zipfile.ZipFile(p, "w") as z:
+        z.writestr("m/data.pkl", forged_tensor_pickle(shape, stride, numel))
+        z.writestr("m/data/0", bytes(16))
+    probe(name, p, reader)
+# 5. a pickle putting one object at memo index 2^27 (CPython's unpickler would size its memo table for it: 1 GB)
+p = d / "memo.pt"
+with zipfile.ZipFile(p, "w") as z:
+    z.writestr("m/data.pkl", b"\x80\x02Nr" + struct.pack("<I", 1 << 27) + b".")
+probe("torchscript_memo_index_2pow27", p, read_torchscript)
 """
 
 
 def test_declared_sizes_cannot_make_readers_allocate(tmp_path):
-    """1 GiB-declared sections, 1e12-vertex PLYs and 1e9-point COLMAP files of ~1 KB: our error, < 100 MB RSS."""
+    """1 GiB-declared sections, 1e12-vertex PLYs, 1e9-point COLMAP files and 1e12-element tensors in PyTorch
+    archives, all of ~1 KB: our error, < 100 MB RSS."""
     r = subprocess.run([sys.executable, "-c", _MEMORY_PROBE, str(tmp_path), str(Path(__file__).parent)],
                        capture_output=True, text=True, timeout=120, check=False)
     assert r.returncode == 0, r.stderr
     rows = [json.loads(line) for line in r.stdout.splitlines()]
-    assert len(rows) == 8
+    assert len(rows) == 12
     for row in rows:
         assert row["outcome"] == "our_error", row
         assert row["bytes"] < 2048, row

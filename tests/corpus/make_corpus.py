@@ -18,6 +18,7 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
 
 import test_fuzz_readers as F
+from conftest import forged_tensor_pickle, os_system_pickle, replace_zip_record
 from proxycodec.formats import container
 
 
@@ -158,6 +159,58 @@ def main() -> None:
     add("container_header", "wrong_magic.pxc", b"\x89PXD" + c[4:])
     add("container_header", "toc_crc.pxc", c[:40] + bytes([c[40] ^ 1]) + c[41:])
 
+    # ---- PyTorch archives (Scaffold-GS's MLP files)
+    ts, ck = S["torchscript"], S["torch_checkpoint"]
+    add("torchscript", "ok_seed.pt", ts)
+    add("torch_checkpoint", "ok_seed.pth", ck)
+    ts = _zip(_records(ts, lambda n: "/code/" not in n))  # the forged ones without code/ (never read): smaller
+    add("torchscript", "ok_without_code.pt", ts)
+    for reader, seed, ext in (("torchscript", ts, "pt"), ("torch_checkpoint", ck, "pth")):
+        add(reader, f"truncated.{ext}", seed[: len(seed) // 2])
+        add(reader, f"evil_os_system.{ext}", replace_zip_record(seed, "/data.pkl", os_system_pickle("true")))
+        add(reader, f"evil_builtins_eval.{ext}", replace_zip_record(
+            seed, "/data.pkl", b"\x80\x02cbuiltins\neval\nX\x04\x00\x00\x001+1\x85R."))
+        # storage 0 is the first Linear's weight, 4 x 5 floats
+        add(reader, f"view_1e12_of_storage.{ext}", replace_zip_record(
+            seed, "/data.pkl", forged_tensor_pickle((10**6, 10**6), (0, 0), 20)))
+        add(reader, f"shape_past_storage.{ext}", replace_zip_record(
+            seed, "/data.pkl", forged_tensor_pickle((5, 5), (5, 1), 20)))
+        add(reader, f"storage_1e12.{ext}", replace_zip_record(seed, "/data.pkl",
+                                                              forged_tensor_pickle((2, 2), (2, 1), 10**12)))
+        add(reader, f"pickle_not_a_pickle.{ext}", replace_zip_record(seed, "/data.pkl", b"\x80\x02K"))
+        # LONG_BINPUT 2^32 - 1: CPython's unpickler sized its memo table by it (MemoryError, or 32 GB)
+        add(reader, f"bug_memo_index_2pow32.{ext}", replace_zip_record(seed, "/data.pkl",
+                                                                       b"\x80\x02Nr\xff\xff\xff\xff."))
+    # a __torch__ module class where only tensors may be (a torch.save file)
+    add("torch_checkpoint", "script_module.pth", replace_zip_record(ck, "/data.pkl", _data_pkl(ts)))
+    add("torchscript", "not_zip.pt", b"PK\x03\x04" + bytes(60))
+    add("torchscript", "no_data_pkl.pt", _zip({"m/code/__torch__.py": b"import os\nos.system('true')\n"}))
+    add("torchscript", "two_data_pkl.pt", _zip({"a/data.pkl": b"\x80\x02N.", "b/data.pkl": b"\x80\x02N."}))
+    add("torchscript", "deflate_bomb.pt", _zip({"m/data.pkl": forged_tensor_pickle((4,), (1,), 1 << 20),
+                                                "m/data/0": bytes(4 << 20)}, deflate=True))
+    add("torchscript", "module_state_not_dict.pt", _zip({"m/data.pkl": b"\x80\x02c__torch__\nM\n)\x81K\x01b."}))
+    add("torchscript", "tensor_not_module.pt", replace_zip_record(ts, "/data.pkl",
+                                                                   forged_tensor_pickle((4,), (1,), 20)))
+
+    # ---- Scaffold-GS cfg_args and cameras.json
+    cfg = S["cfg_args"]
+    add("cfg_args", "ok_seed", cfg)
+    add("cfg_args", "ok_non_literal_value_is_skipped", cfg.replace(b"ratio=1", b"ratio=__import__('os').system('true')"))
+    add("cfg_args", "call_not_namespace", b"__import__('os').system('true')")
+    add("cfg_args", "double_star", b"Namespace(**{'a': 1})")
+    add("cfg_args", "deep_nesting", b"Namespace(a=" + b"[" * 5000 + b"]" * 5000 + b")")
+    add("cfg_args", "not_utf8", b"Namespace(a='\xff')")
+    add("cfg_args", "truncated", cfg[: len(cfg) // 2])
+    cams = S["scaffold_cameras"]
+    add("scaffold_cameras", "ok_seed.json", cams)
+    add("scaffold_cameras", "not_a_rotation.json", cams.replace(b"[1.0, 0.0, 0.0], [0.0, 0.0, -1.0]",
+                                                                b"[2.0, 0.0, 0.0], [0.0, 0.0, -1.0]", 1))
+    add("scaffold_cameras", "nan_position.json", cams.replace(b"[0.0, -4.0, 0.5]", b"[NaN, -4.0, 0.5]", 1))
+    add("scaffold_cameras", "width_float.json", cams.replace(b'"width": 16', b'"width": 16.5', 1))
+    add("scaffold_cameras", "width_1e30.json", cams.replace(b'"width": 16', b'"width": 1' + b"0" * 30, 1))
+    add("scaffold_cameras", "deep_nesting.json", b"[" * 5000 + b"]" * 5000)
+    add("scaffold_cameras", "empty_list.json", b"[]")
+
     for reader, items in files.items():
         d = HERE / reader
         if d.exists():
@@ -169,6 +222,29 @@ def main() -> None:
             (d / name).write_bytes(data)
     total = sum(p.stat().st_size for p in HERE.glob("*/*"))
     print(f"{sum(len(v) for v in files.values())} files, {total} bytes")
+
+
+def _zip(records: dict[str, bytes], deflate: bool = False) -> bytes:
+    import io
+    import zipfile
+
+    out = io.BytesIO()
+    with zipfile.ZipFile(out, "w", zipfile.ZIP_DEFLATED if deflate else zipfile.ZIP_STORED) as z:
+        for name, data in records.items():
+            z.writestr(name, data)
+    return out.getvalue()
+
+
+def _records(archive: bytes, keep=lambda name: True) -> dict[str, bytes]:
+    import io
+    import zipfile
+
+    with zipfile.ZipFile(io.BytesIO(archive)) as z:
+        return {n: z.read(n) for n in z.namelist() if keep(n)}
+
+
+def _data_pkl(archive: bytes) -> bytes:
+    return next(v for k, v in _records(archive).items() if k.endswith("/data.pkl"))
 
 
 def _reheader(c: bytes, *, version: int | None = None, n: int | None = None) -> bytes:
