@@ -50,16 +50,28 @@ def _stderr(msg: str) -> None:
 @encode_option("--seed", show_default=True, type=int)
 @click.option("--refit-predictor", is_flag=True,
               help="Ignore a stage-2 predictor/proxy split stored by `fit`; select proxies and fit anew.")
+@encode_option("--distill/--no-distill",
+               help="Fine-tune the proxy scene against the source scene's own renders (no images needed) "
+                    "[default: when the scene has no stage-2 predictor of its own].")
+@encode_option("--distill-iters", show_default=True, type=int, help="Distillation iterations.")
+@encode_option("--distill-time-budget", type=float,
+               help="Seconds of distillation (with --distill-iters, whichever ends first).")
+@encode_option("--distill-views", show_default=True, type=int,
+               help="Teacher views at least (automatic views around the scene are added up to this many).")
+@encode_option("--images", type=click.Path(exists=True, file_okay=False),
+               help="Distil against this dataset's photos (Blender or COLMAP folder) instead of the source's renders.")
 @click.option("--json", "as_json", is_flag=True, help="Print the encode report as JSON on stdout.")
 @user_errors
 def encode(scene, out, weights, proxy_ratio, proxy_selection, cell_size, feature_bits, offset_bits, scaling_bits,
            weights_dtype, predict_offsets, max_cameras, drop_dead_offsets, predictor_iters, leaf_sample, zstd_level, seed,
-           refit_predictor, as_json) -> None:
+           refit_predictor, distill, distill_iters, distill_time_budget, distill_views, images, as_json) -> None:
     """Compress an anchor scene (Scaffold-GS PLY + weights sidecar, or a trained Scaffold-GS output: its folder or
     its point_cloud.ply with the MLP files beside it) to a proxy-anchor container.
 
-    The residual predictor is fitted here on the scene's own features (L_recon). A predictor trained jointly with
-    the rendering loss comes from `proxycodec fit` (stage 2) and is used as it is when the scene carries one.
+    A scene from `proxycodec fit` (stage 2) carries a residual predictor trained jointly with the rendering loss:
+    it is used as it is. Any other scene is distilled: the proxy scene (proxies, residual predictor, decoder) is
+    fine-tuned against the source scene's own renders at random resolutions, and the report gives the decoded
+    scene's PSNR/SSIM against the source on held-out views at 10%..100%.
     """
     from .. import codec
 
@@ -70,7 +82,9 @@ def encode(scene, out, weights, proxy_ratio, proxy_selection, cell_size, feature
                      feature_bits=feature_bits, offset_bits=offset_bits, scaling_bits=scaling_bits,
                      weights_dtype=weights_dtype, predict_offsets=predict_offsets, max_cameras=max_cameras,
                      predictor_iters=predictor_iters, leaf_sample=leaf_sample, zstd_level=zstd_level, seed=seed,
-                     use_fitted=not refit_predictor, drop_dead_offsets=drop_dead_offsets, progress=_stderr)
+                     use_fitted=not refit_predictor, drop_dead_offsets=drop_dead_offsets, distill=distill,
+                     distill_iters=distill_iters, distill_time_budget=distill_time_budget,
+                     distill_views=distill_views, images=images, progress=_stderr)
     if as_json:
         click.echo(json.dumps(r.to_json(), indent=2))
     else:

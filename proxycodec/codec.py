@@ -27,6 +27,7 @@ from .camera import Camera
 from .camera import default_cameras as camera_defaults
 from .decoder import GaussianDecoder
 from .errors import ProxycodecError
+from .loop import check_run_length
 from .formats.container import (
     MAGIC, ContainerError, SectionInfo, read_container, read_header, write_container,
 )
@@ -79,6 +80,15 @@ class EncodeConfig:
     # Off by default: it saves little for much encode time (SPEC.md section 4).
     drop_dead_offsets: bool = False
     dead_threshold: float = -0.02
+    # Distillation (``proxycodec.distill``): fine-tune the proxy scene against the source scene's own renders.
+    # None: when the scene has no stage-2 predictor (a fitted one is used as it is); True / False: always / never
+    # (never: the predictor is fitted on feature distance, L_recon, alone).
+    distill: bool | None = None
+    distill_iters: int | None = 1500
+    distill_time_budget: float | None = None  # seconds; with distill_iters, whichever ends first
+    distill_views: int = 32  # teacher views at least: automatic views are added around the scene up to this many
+    distill_lr_scale: float = 1.0  # fit's learning rates of the anchors and the decoder times this (not the predictor's)
+    images: str | None = None  # a dataset folder: distil against its photos instead of the source's renders
 
     def __post_init__(self) -> None:
         self.check()
@@ -104,7 +114,21 @@ class EncodeConfig:
             raise ProxycodecError("predictor iterations must be >= 0")
         if not (0.0 < self.leaf_sample <= 1.0):
             raise ProxycodecError(f"leaf sample fraction must be in (0, 1], got {self.leaf_sample}")
+        if self.distill is not False or self.images is not None:
+            check_run_length(self.distill_iters, self.distill_time_budget, None)
+        if not (math.isfinite(self.distill_lr_scale) and self.distill_lr_scale >= 0):
+            raise ProxycodecError(f"distill learning-rate scale must be >= 0, got {self.distill_lr_scale}")
+        if self.distill_views < 1:
+            raise ProxycodecError(f"distill views must be >= 1, got {self.distill_views}")
+        if self.images is not None and self.distill is False:
+            raise ProxycodecError("images are for distillation: drop --no-distill")
         return self
+
+    def distilling(self, has_fitted_predictor: bool) -> bool:
+        """Whether ``encode`` distils a scene (with or without a stage-2 predictor of its own)."""
+        if self.images is not None:
+            return True
+        return (not has_fitted_predictor) if self.distill is None else self.distill
 
 
 @dataclass
@@ -130,7 +154,7 @@ class EncodeReport:
         return {"path": str(self.path), "file_bytes": self.file_bytes, "anchors": self.anchors,
                 "proxies": self.proxies, "leaves": self.leaves, "cell_size": self.cell_size,
                 "source_bytes": self.source_bytes, "ratio": self.ratio, "seconds": self.seconds,
-                "sections": self.sections,
+                "sections": self.sections, "distill": self.meta.get("distill"),
                 "predictor": None if self.training is None else {
                     "baseline_loss": self.training.baseline_loss, "final_loss": self.training.final_loss,
                     "iters": self.training.iters}}
@@ -200,7 +224,14 @@ def encode(
     t_start = time.perf_counter()
     # 1. the scene, its positions coded and every per-anchor array in the stored (Morton) order
     model, source_bytes, source_name, fitted = _source_model(source)
-    scene = _checked_scene(model, source_name)
+    _checked_scene(model, source_name)
+    distilled = None
+    if predictor is None and cfg.distilling(fitted[0] is not None):
+        source_model = model
+        distilled = _distill(model, fitted if cfg.use_fitted else (None, None), cfg, say)
+        model, fitted = distilled.model, (distilled.predictor, distilled.proxy_mask)
+        cfg = replace(cfg, use_fitted=True)
+    scene = model.scene
     K, Fd, voxel = scene.n_offsets, scene.feat_dim, float(scene.voxel_size)
     pos = scene.positions.detach().cpu().numpy().astype(np.float32)
     coding = encode_positions(pos, voxel)
@@ -224,17 +255,22 @@ def encode(
         predictor_config=pred.config, cameras=_spread(model.cameras or [], cfg.max_cameras),
         background=model.background,
         training={**tcfg.to_json(), "baseline_loss": training.baseline_loss, "final_loss": training.final_loss,
-                  "loss": "feature L_recon (MSE + 0.1 cos)", "rendering_loss": False},
+                  "loss": "feature L_recon (MSE + 0.1 cos)", "rendering_loss": distilled is not None},
         proxy={"source": proxy_source, "ratio": cfg.proxy_ratio, "cell_size": cell_size,
                "cell_size_voxels": cell_size / voxel, "cell_target": cfg.cell_target, "seed": cfg.seed},
         cameras_in_source=len(model.cameras or []), scene=_jsonable(dict(scene.metadata)),
         source={"bytes": source_bytes, "name": os.path.basename(source_name)},
-        encoder={"zstd_level": cfg.zstd_level, "proxycodec": _version()})
+        encoder={"zstd_level": cfg.zstd_level, "proxycodec": _version()},
+        **({} if distilled is None else {"distill": {
+            "iterations": distilled.iterations, "seconds": round(distilled.seconds, 3), "images": cfg.images,
+            "teacher_views": len(distilled.views.train_indices), "loss": "fit's rendering loss, random xi"}}))
     # 6. the decoded model, through the decoder's own path (so report.model == decode(out), bit for bit)
     err = ProxycodecError
     decoded = _model_from_sections(meta, sections, err)
     if cfg.drop_dead_offsets and not cfg.predict_offsets:
         decoded = _drop_dead_offsets(decoded, sections, meta, q, cfg.dead_threshold, say)
+    if distilled is not None:
+        meta["distill"]["held_out"] = _held_out(decoded, source_model, distilled, cfg, say)
     packed, meta["weights_layout"] = pack_weights(sections)
     file_bytes = write_container(out, meta, packed, level=cfg.zstd_level)
     _, _, infos, _ = read_header(out)
@@ -246,6 +282,46 @@ def encode(
         sections=[s.to_json() for s in infos], source_bytes=source_bytes,
         seconds={"total": time.perf_counter() - t_start, "predictor": t_train}, training=training,
         model=decoded, meta=meta)
+
+
+def _distill(model: SceneModel, fitted: tuple, cfg: EncodeConfig, say: Progress):
+    """The proxy scene fine-tuned against the source's renders (or ``cfg.images``' photos): ``distill.distill``
+    with fit's configuration made from the encode knobs."""
+    from .distill import TeacherViews, distill, teacher_cameras
+    from .train import FitConfig
+
+    pos = model.scene.positions.detach().numpy()
+    voxel = float(model.scene.voxel_size)
+    fcfg = FitConfig(
+        iters=cfg.distill_iters, time_budget=cfg.distill_time_budget, seed=cfg.seed, max_width=None,
+        proxy_ratio=cfg.proxy_ratio, proxy_selection=cfg.proxy_selection, leaf_sample=cfg.leaf_sample,
+        proxy_cell=float(cfg.cell_size) if cfg.cell_size else default_cell_size(pos, voxel, cfg.cell_target),
+        predictor_hidden=cfg.predictor_hidden, predictor_blocks=cfg.predictor_blocks,
+        predictor_context=cfg.predictor_context, predict_offsets=bool(cfg.predict_offsets))
+    views = None
+    if cfg.images is not None:
+        from .formats.datasets import load_dataset
+
+        widths = [c.width for c in model.cameras or []]
+        views = load_dataset(cfg.images, max_width=max(widths) if widths else None)
+        say(f"distilling against the photos of {cfg.images}")
+    start = fitted if fitted[0] is not None else None
+    return distill(model, fcfg, views=views, start_proxies=start, log=say, min_views=cfg.distill_views,
+                   lr_scale=cfg.distill_lr_scale)
+
+
+def _held_out(decoded: SceneModel, source: SceneModel, distilled, cfg: EncodeConfig, say: Progress) -> dict:
+    """The decoded scene against the source's anti-aliased renders on held-out views, 10%..100%."""
+    from .distill import TeacherViews, held_out_report
+
+    views = distilled.views
+    if not isinstance(views, TeacherViews):  # distilled against photos: the report still compares with the source
+        views = TeacherViews(source, [views.cameras[i] for i in views.test_indices] or list(views.cameras))
+        views.test_indices, views.train_indices = list(range(len(views.cameras))), []
+    rep = held_out_report(decoded, views)
+    say("decoded vs source renders on held-out views: " + "  ".join(
+        f"{r['xi']:.1f}: {r['psnr']:.2f}" for r in rep["per_resolution"]) + f"  (mean {rep['psnr']:.2f} dB)")
+    return rep
 
 
 def _checked_scene(model: SceneModel, source_name: str) -> AnchorScene:
@@ -503,7 +579,7 @@ def _scene_stats(meta: dict, infos, size: int) -> dict:
         "source_bytes": src, "ratio": (src / size) if src else None, "bytes_by_group": groups,
         "positions": meta.get("positions", {}).get("mode"), "offsets": meta.get("offsets"),
         "proxy": meta.get("proxy"), "quant_bits": {k: v.get("bits") for k, v in meta.get("quant", {}).items()},
-        "weights_dtype": meta.get("weights_dtype"),
+        "weights_dtype": meta.get("weights_dtype"), "distill": meta.get("distill"),
     }
 
 
@@ -547,10 +623,16 @@ def as_model(source) -> SceneModel:
         return source
     p = Path(source)
     try:
-        is_container = p.open("rb").read(len(MAGIC)) == MAGIC
+        is_container = p.is_file() and p.open("rb").read(len(MAGIC)) == MAGIC
     except FileNotFoundError:
         raise ProxycodecError("no such file", p) from None
-    return decode(p) if is_container else SceneModel.load(p)
+    if not p.exists():
+        raise ProxycodecError("no such file", p)
+    if is_container:
+        return decode(p)
+    from .scaffold_gs import is_scaffold_output, load_scaffold_output
+
+    return load_scaffold_output(p) if is_scaffold_output(p) else SceneModel.load(p)
 
 
 def render(source, xi: float = 1.0, cameras: list[Camera] | None = None, *,

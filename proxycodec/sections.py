@@ -28,7 +28,11 @@ from .netconfig import DecoderConfig, PredictorConfig
 
 SCENE_KIND = "proxycodec.scene"
 SCENE_FORMAT = 2  # version of the scene sections (inside container format 1); 2: weights packed per group and dtype
-SUPPORTED_SCENE_FORMATS = (1, 2)
+#: 3: format 2 with a Scaffold-GS decoder variant (``DecoderConfig.variant()``: no distance input, feature bank).
+#: Written only for such decoders, so that a reader that predates the variants refuses the file ("upgrade") instead
+#: of ignoring the fields it does not know and rendering wrongly.
+SCENE_FORMAT_VARIANT = 3
+SUPPORTED_SCENE_FORMATS = (1, 2, 3)
 FLOAT_BITS = 32  # "bits" value meaning: store float32, no quantisation
 PREDICT_CHUNK = 65536  # leaves per predictor batch (fixed: the same batches in encoder and decoder)
 MAX_ANCHORS = 1 << 28
@@ -279,7 +283,7 @@ def scene_metadata(positions: PositionCoding, proxy_mask: np.ndarray, quantized:
     M, P = int(len(proxy_mask)), int(proxy_mask.sum())
     return {
         "kind": SCENE_KIND,
-        "scene_format": SCENE_FORMAT,
+        "scene_format": SCENE_FORMAT_VARIANT if decoder_config.variant() else SCENE_FORMAT,
         "anchors": {"count": M, "proxies": P, "leaves": M - P, "feat_dim": feat_dim, "n_offsets": n_offsets},
         "voxel_size": voxel_size,
         "bounds": np.asarray(bounds, dtype=np.float64).tolist(),

@@ -25,7 +25,7 @@ import shutil
 import sys
 import tempfile
 import time
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
@@ -289,7 +289,11 @@ def checkpoint_path_for(out_ply: str | os.PathLike) -> Path:
 class Trainer(TrainingRun):
     """Owns the anchors, the decoder, the predictor, the optimiser and the growing strategy of one fit."""
 
-    def __init__(self, data, config: FitConfig, dataset_root: str = "", log: ProgressFn | None = None):
+    def __init__(self, data, config: FitConfig, dataset_root: str = "", log: ProgressFn | None = None, *,
+                 start: SceneModel | None = None, start_proxies: tuple | None = None):
+        """``start``: fine-tune this scene (its anchors and decoder; the anchor set stays as it is when
+        ``config.update_until`` is 0) instead of growing one from the dataset's points. ``start_proxies``:
+        (residual predictor, proxy mask) that stage 2 then starts from instead of selecting proxies afresh."""
         self.data = data
         self.cfg = config
         self.dataset_root = dataset_root
@@ -300,15 +304,24 @@ class Trainer(TrainingRun):
         self.rng = np.random.default_rng(config.seed)
         self.images = TargetImages(data, config.image_cache_mb << 20)
         torch.manual_seed(config.seed)
-        anchors, voxel, center, radius = initial_anchors(data, config, self.rng)
-        M, K, Fd = len(anchors), config.n_offsets, config.feat_dim
-        scale = np.log(knn_scale(anchors))
-        self.anchors = TrainableAnchors(
-            torch.tensor(anchors, dtype=torch.float32), torch.zeros(M, Fd), torch.zeros(M, K, 3),
-            torch.tensor(np.repeat(scale[:, None], 6, 1), dtype=torch.float32), voxel)
-        self.decoder = GaussianDecoder(config.decoder_config(center, radius))
-        with torch.no_grad():  # Gaussians start visible (see FitConfig.opacity_bias_init)
-            self.decoder.mlp_opacity[-1].bias.add_(config.opacity_bias_init)
+        if start is None:
+            anchors, voxel, center, radius = initial_anchors(data, config, self.rng)
+            M, K, Fd = len(anchors), config.n_offsets, config.feat_dim
+            scale = np.log(knn_scale(anchors))
+            self.anchors = TrainableAnchors(
+                torch.tensor(anchors, dtype=torch.float32), torch.zeros(M, Fd), torch.zeros(M, K, 3),
+                torch.tensor(np.repeat(scale[:, None], 6, 1), dtype=torch.float32), voxel)
+            self.decoder = GaussianDecoder(config.decoder_config(center, radius))
+            with torch.no_grad():  # Gaussians start visible (see FitConfig.opacity_bias_init)
+                self.decoder.mlp_opacity[-1].bias.add_(config.opacity_bias_init)
+        else:
+            s = start.scene
+            self.anchors = TrainableAnchors(s.positions, s.features, s.offsets, s.scalings, s.voxel_size)
+            dcfg = start.decoder.config
+            if not config.fixed_res:  # the embedding is now trained over the configured band
+                dcfg = replace(dcfg, film_xi_range=(config.xi_min, config.xi_max))
+            self.decoder = GaussianDecoder.from_arrays(dcfg, start.decoder.state_arrays())
+        self.start_proxies = start_proxies
         self.predictor = None
         self.proxy_mask: torch.Tensor | None = None  # [M] bool
         self.nearest: torch.Tensor | None = None  # [M, context] long
@@ -316,7 +329,7 @@ class Trainer(TrainingRun):
         self.leaf_offset_target: torch.Tensor | None = None  # [L, K, 3] their stage-1 offsets (predict_offsets)
         self.leaves: torch.Tensor | None = None  # [L] long
         self.opt = self._optimiser()
-        self.strategy = ScaffoldStrategy(config, M, K, self.log)
+        self.strategy = ScaffoldStrategy(config, self.anchors.num_anchors, self.anchors.n_offsets, self.log)
         self._start_run()
         self.stage = 1
 
@@ -441,16 +454,22 @@ class Trainer(TrainingRun):
                                                                        self.anchors.voxel_size)
 
     def enter_stage2(self) -> None:
-        """Freeze the anchor set, select proxies, warm the predictor up on L_recon alone, start joint training."""
+        """Freeze the anchor set, select proxies, warm the predictor up on L_recon alone, start joint training.
+        With ``start_proxies`` the given split and predictor are used as they are (no selection, no warm-up)."""
         c = self.cfg
         a = self.anchors
         cell = self.proxy_cell_size()
-        mask = select_proxies(a.positions, cell, c.proxy_ratio, c.seed, c.proxy_selection)
+        if self.start_proxies is not None:
+            predictor, mask = self.start_proxies
+            mask = np.asarray(mask, dtype=bool)
+            self.predictor = predictor_from_json(predictor.config.to_json(), predictor.state_arrays())
+        else:
+            mask = select_proxies(a.positions, cell, c.proxy_ratio, c.seed, c.proxy_selection)
         self.leaf_target = a.features.detach()[torch.from_numpy(~mask)].clone()
         if c.predict_offsets:
             self.leaf_offset_target = a.offsets.detach()[torch.from_numpy(~mask)].clone()
         self._setup_proxies(mask)
-        if c.predictor_warmup > 0 and self.leaves.numel():
+        if c.predictor_warmup > 0 and self.leaves.numel() and self.start_proxies is None:
             res = train_predictor(self.predictor, a.positions, a.features.detach(), mask, self.nearest.numpy(),
                                   offsets=a.offsets.detach() if c.predict_offsets else None,
                                   config=TrainConfig(iters=c.predictor_warmup, sample_frac=c.leaf_sample,

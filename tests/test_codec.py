@@ -21,7 +21,7 @@ from proxycodec.sections import read_scene_container
 from proxycodec.model import SceneModel
 from proxycodec.scene import AnchorScene
 
-FAST = dict(predictor_iters=15, predictor_hidden=16, predictor_blocks=1, zstd_level=3)
+FAST = dict(distill=False, predictor_iters=15, predictor_hidden=16, predictor_blocks=1, zstd_level=3)
 VOXEL = 0.05
 
 
@@ -181,7 +181,7 @@ class TestExactness:
 
     def test_lossless_bits_and_predicted_offsets(self, tmp_path):
         m = tiny_model(150)
-        r = codec.encode(m, tmp_path / "a.pxc", feature_bits=32, offset_bits=32, scaling_bits=32,
+        r = codec.encode(m, tmp_path / "a.pxc", distill=False, feature_bits=32, offset_bits=32, scaling_bits=32,
                          weights_dtype="f32", predict_offsets=True, **FAST)
         dec = codec.decode(tmp_path / "a.pxc")
         _assert_same(dec, r.model)
@@ -333,7 +333,7 @@ class TestCli:
         m = tiny_model(150)
         ply, _ = m.save(tmp_path / "s.ply")
         run = CliRunner().invoke
-        r = run(cli, ["encode", str(ply), "--predictor-iters", "10", "--zstd-level", "3", "--seed", "1"])
+        r = run(cli, ["encode", str(ply), "--no-distill", "--predictor-iters", "10", "--zstd-level", "3", "--seed", "1"])
         assert r.exit_code == 0, r.output
         pxc = tmp_path / "s.pxc"
         assert pxc.exists() and "predictor" in r.output  # progress lines (stderr is mixed in by CliRunner)
@@ -377,7 +377,7 @@ def test_wrongly_typed_metadata_is_our_error(tmp_path):
     from proxycodec.formats.container import ContainerError, read_container, write_container
 
     src = tmp_path / "s.pxc"
-    codec.encode(tiny_model(60), src, predictor_iters=5)
+    codec.encode(tiny_model(60), src, distill=False, predictor_iters=5)
     c = read_container(src)
     for patch in ({"source": 5}, {"source": {"bytes": "many"}}, {"anchors": []}):
         q = tmp_path / "q.pxc"
@@ -396,7 +396,7 @@ def test_q8_weights_round_trip_within_half_a_step_and_cameras_are_capped(tmp_pat
 
     m = tiny_model(80)
     m.cameras = orbit_cameras((0.0, 0.0, 0.1), 1.5, 40, width=32, height=24)
-    r = codec.encode(m, tmp_path / "q.pxc", weights_dtype="q8", predictor_iters=10, max_cameras=5)
+    r = codec.encode(m, tmp_path / "q.pxc", distill=False, weights_dtype="q8", predictor_iters=10, max_cameras=5)
     back = codec.decode(tmp_path / "q.pxc")
     for (k, a), (_, b) in zip(r.model.decoder.state_dict().items(), back.decoder.state_dict().items()):
         assert torch.equal(a, b), k  # decode == what encode reported, bit for bit
@@ -407,5 +407,5 @@ def test_q8_weights_round_trip_within_half_a_step_and_cameras_are_capped(tmp_pat
     assert [c.name for c in back.cameras] == [m.cameras[i].name for i in (0, 8, 16, 24, 32)]
     c = read_scene_container(tmp_path / "q.pxc")
     assert c.arrays["decoder/mlp_cov.2.weight"].dtype == np.int8 and c.meta["cameras_in_source"] == 40
-    f16 = codec.encode(m, tmp_path / "h.pxc", weights_dtype="f16", predictor_iters=10, max_cameras=5)
+    f16 = codec.encode(m, tmp_path / "h.pxc", distill=False, weights_dtype="f16", predictor_iters=10, max_cameras=5)
     assert r.file_bytes < f16.file_bytes

@@ -159,7 +159,7 @@ def test_invalid_scenes_are_refused_with_our_error():
 
 def _round_trip(codec, model, tmp_path, **knobs):
     out = tmp_path / "x.pxc"
-    rep = codec.encode(model, out, predictor_iters=knobs.pop("predictor_iters", 5), zstd_level=3, **knobs)
+    rep = codec.encode(model, out, distill=False, predictor_iters=knobs.pop("predictor_iters", 5), zstd_level=3, **knobs)
     back = codec.decode(out)
     s, b = model.scene, back.scene
     assert b.num_anchors == s.num_anchors == rep.anchors
@@ -190,7 +190,7 @@ def test_codec_round_trip_on_degenerate_layouts(case, tmp_path):
 def test_codec_refuses_an_empty_scene_clearly(tmp_path):
     codec = _codec()
     with pytest.raises(ProxycodecError, match="no anchors"):
-        codec.encode(SceneModel(_anchors(np.zeros((0, 3))), _decoder()), tmp_path / "e.pxc", predictor_iters=1)
+        codec.encode(SceneModel(_anchors(np.zeros((0, 3))), _decoder()), tmp_path / "e.pxc", distill=False, predictor_iters=1)
     assert not (tmp_path / "e.pxc").exists() and list(tmp_path.iterdir()) == []
 
 
@@ -228,13 +228,13 @@ def test_cli_on_an_empty_and_a_one_anchor_scene(tmp_path):
     run = lambda *a: subprocess.run([sys.executable, "-c", "from proxycodec.cli.main import main; main()", *a],  # noqa
                                     capture_output=True, text=True, timeout=300)
     SceneModel(_anchors(np.zeros((0, 3))), _decoder(), [CAM]).save(tmp_path / "e.ply")
-    r = run("encode", str(tmp_path / "e.ply"), "-o", str(tmp_path / "e.pxc"), "--predictor-iters", "1")
+    r = run("encode", str(tmp_path / "e.ply"), "-o", str(tmp_path / "e.pxc"), "--no-distill", "--predictor-iters", "1")
     assert r.returncode == 2 and "no anchors" in r.stderr and "Traceback" not in r.stderr
     assert not (tmp_path / "e.pxc").exists()
     r = run("stats", str(tmp_path / "e.ply"))
     assert r.returncode == 0, r.stderr
     SceneModel(_anchors(CASES["one_anchor"]), _decoder(), [CAM]).save(tmp_path / "o.ply")
-    r = run("encode", str(tmp_path / "o.ply"), "-o", str(tmp_path / "o.pxc"), "--predictor-iters", "2",
+    r = run("encode", str(tmp_path / "o.ply"), "-o", str(tmp_path / "o.pxc"), "--no-distill", "--predictor-iters", "2",
             "--zstd-level", "3")
     assert r.returncode == 0, r.stderr
     r = run("stats", str(tmp_path / "o.pxc"), "--json")

@@ -35,7 +35,7 @@ def test_decoded_ply_converts_to_spz_with_splat_transform(tmp_path):
 
     full = sample_model()
     model = SceneModel(full.scene.subset(np.arange(0, full.scene.num_anchors, 8)), full.decoder, full.cameras)
-    codec.encode(model, tmp_path / "s.pxc", predictor_iters=20)
+    codec.encode(model, tmp_path / "s.pxc", distill=False, predictor_iters=20)
     r = subprocess.run([sys.executable, "-c", "from proxycodec.cli.main import main; main()", "decode",
                         str(tmp_path / "s.pxc"), "--res", "0.5", "--view", "0", "-o", str(tmp_path / "r"),
                         "--ply", str(tmp_path / "g.ply")], capture_output=True, text=True)

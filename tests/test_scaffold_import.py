@@ -465,16 +465,21 @@ def test_cli_encode_decode_render_stats_on_an_output_folder(tmp_path):
     root = write_output(tmp_path / "scaffold_out", scaffold_mlps(**kw), "split")
     run = CliRunner()
     out = tmp_path / "scene.pxc"
-    r = run.invoke(_cli(), ["encode", str(root), "-o", str(out), "--predictor-iters", "30"])
+    r = run.invoke(_cli(), ["encode", str(root), "-o", str(out), "--predictor-iters", "30", "--distill-iters", "3",
+                                 "--distill-views", "8"])
     assert r.exit_code == 0, r.output
     meta = read_container(out).meta
     dec = meta["decoder"]
     assert (dec["cov_dist"], dec["feature_bank"]) == (False, F)  # Scaffold-GS's default: no distance
     assert "opacity_dist" not in dec and "color_dist" not in dec  # at our default (with distance): omitted
+    # a reader that predates the variants refuses the file instead of ignoring the fields it does not know
+    assert meta["scene_format"] == 3
+    # the Python API renders the output folder too
+    assert len(codec.render(root, xi=0.2)) >= 1
     assert meta["source"]["bytes"] == sum(p.stat().st_size for p in (root / "point_cloud" / "iteration_30000")
                                           .iterdir())
     # the default output name for a folder
-    r = run.invoke(_cli(), ["encode", str(root), "--predictor-iters", "0"])
+    r = run.invoke(_cli(), ["encode", str(root), "--predictor-iters", "0", "--distill-iters", "2", "--distill-views", "4"])
     assert r.exit_code == 0 and (tmp_path / "scaffold_out.pxc").is_file(), r.output
     r = run.invoke(_cli(), ["stats", str(root)])
     assert r.exit_code == 0 and "Scaffold-GS output (split MLP files" in r.output and "150 anchors" in r.output

@@ -160,7 +160,7 @@ class TestProxyLeafMLP:
         assert load_predictor(weights_path_for(out)) == (None, None)  # the container stores residual ones only
         m = SceneModel.load(out)
         assert torch.equal(m.scene.features, res.model.scene.features)
-        r = codec.encode(out, tmp_path / "pl.pxc", predictor_iters=5)
+        r = codec.encode(out, tmp_path / "pl.pxc", distill=False, predictor_iters=5)
         assert r.meta["proxy"]["source"] == "encode"
         assert codec.decode(tmp_path / "pl.pxc").scene.num_anchors == m.scene.num_anchors
 
@@ -204,7 +204,7 @@ class TestGateSwitches:
         m = SceneModel.load(gated)
         assert m.decoder.config.gate == GateConfig(True, 6.0, 0.5)
         assert m.meta["fit"]["config"]["gate_kappa"] == 6.0 and m.meta["fit"]["config"]["gate_eta"] == 0.5
-        codec.encode(gated, tmp_path / "g.pxc", predictor_iters=2)
+        codec.encode(gated, tmp_path / "g.pxc", distill=False, predictor_iters=2)
         assert codec.decode(tmp_path / "g.pxc").decoder.config.gate == GateConfig(True, 6.0, 0.5)
         cam = m.cameras[0]
         with torch.no_grad():
@@ -314,7 +314,7 @@ def test_encode_sweep_plan_centres_on_the_defaults():
 def test_encode_leaf_sample_is_recorded(tiny, tmp_path):
     from proxycodec import codec
 
-    r = codec.encode(tiny[1], tmp_path / "a.pxc", predictor_iters=3, leaf_sample=0.05)
+    r = codec.encode(tiny[1], tmp_path / "a.pxc", distill=False, predictor_iters=3, leaf_sample=0.05)
     assert r.meta["training"]["sample_frac"] == 0.05
     with pytest.raises(ProxycodecError, match="leaf sample"):
         codec.encode(tiny[1], tmp_path / "b.pxc", leaf_sample=0.0)

@@ -1,0 +1,180 @@
+"""The image-free encoder: fine-tune the proxy scene against its source scene's own renders.
+
+The teacher is the source scene itself (a ``fit`` output, an imported scene, a converted 3DGS PLY). It is rendered
+from its cameras (the stored ones; automatic views around the anchors when there are few or none) at 100% and
+box-filtered down to each training resolution, exactly as ``fit`` anti-aliases its photos: ``TeacherViews`` is a
+dataset whose images are the teacher's renders. The student is the proxy scene: ``fit``'s own trainer
+(``train.Trainer``) starts from the source's anchors and decoder, enters stage 2 at once (proxies selected, the
+residual predictor warmed up on ``L_recon``, or the scene's fitted predictor and split), and trains the predictor,
+the proxies' features, offsets, scalings and the decoder MLPs (FiLM and gate included) with ``fit``'s rendering loss
+at random resolutions in [0.1, 1]. The anchor set never changes. Held-out views measure the result.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, replace
+
+import numpy as np
+import torch
+
+from .camera import Camera
+from .errors import ProxycodecError
+from .loop import ProgressFn, fmt_time, run_until_done
+from .metrics import psnr, ssim
+from .model import SceneModel
+from .train import FitConfig, Trainer
+
+__all__ = ["REPORT_RESOLUTIONS", "DistillResult", "TeacherViews", "distill", "held_out_report", "teacher_cameras"]
+
+#: the resolutions the held-out report measures (10%..100%, as the paper's tables)
+REPORT_RESOLUTIONS = tuple(round(0.1 * k, 1) for k in range(1, 11))
+
+
+# ================================================================================================ the teacher
+def teacher_cameras(model: SceneModel, min_views: int, width: int = 256, height: int = 256) -> list[Camera]:
+    """The model's cameras, plus automatic views when it has fewer than ``min_views``: cameras on the vertices of
+    an icosphere (``trimesh.creation.icosphere``) around the anchors' centre, looking at it, at the stored cameras'
+    median distance with the first stored camera's size and field of view (else 2.2x the bounds' half-diagonal,
+    50 degrees, ``width`` x ``height``). With stored cameras, only directions within ~100 degrees of their mean
+    direction are added (a captured object is seen from its capture side; views from below a floor teach nothing).
+    """
+    import trimesh
+
+    cams = list(model.cameras or [])
+    if len(cams) >= min_views:
+        return cams
+    b = model.scene.bounds()
+    center = 0.5 * (b[0] + b[1])
+    fov = 50.0
+    if cams:
+        centers = np.array([c.center for c in cams])
+        dist = float(np.median(np.linalg.norm(centers - center, axis=1)))
+        mean_dir = (centers - center).mean(0)
+        mean_dir = mean_dir / max(np.linalg.norm(mean_dir), 1e-12)
+        ref = cams[0]
+        width, height = ref.width, ref.height
+        fov = float(np.degrees(2 * np.arctan(0.5 * ref.width / ref.fx)))
+        up = -np.asarray(ref.rotation)[1]  # the image's up direction in the world (OpenCV: y points down)
+    else:
+        dist = 2.2 * max(float(np.linalg.norm(b[1] - b[0])) / 2.0, 1e-3)
+        mean_dir, up = None, np.array([0.0, 0.0, 1.0])
+    sphere = trimesh.creation.icosphere(subdivisions=2)  # 162 directions, evenly spread
+    dirs = np.asarray(sphere.vertices, dtype=np.float64)
+    if mean_dir is not None and np.linalg.norm(mean_dir) > 0:
+        dirs = dirs[dirs @ mean_dir > -0.2]
+    need = min_views - len(cams)
+    if need <= 0 or len(dirs) == 0:
+        return cams
+    pick = dirs[np.round(np.linspace(0, len(dirs) - 1, min(need, len(dirs)))).astype(int)]
+    auto = [Camera.look_at(center + dist * d, center, up, fov_x_deg=fov, width=width, height=height,
+                           name=f"auto_{i}") for i, d in enumerate(pick)]
+    return cams + auto
+
+
+class TeacherViews:
+    """A dataset (the ``PosedImages`` interface the trainer reads) whose images are a teacher scene's renders at 100%,
+    area-resized to ``camera.scaled(xi)`` by the trainer's targets like any photo. Every ``holdout_every``-th camera
+    is held out (never trained on) for the report."""
+
+    def __init__(self, teacher: SceneModel, cameras: list[Camera], holdout_every: int = 8, backend: str = "auto"):
+        if not cameras:
+            raise ProxycodecError("the scene has no cameras to distil from")
+        self.teacher = teacher
+        self.cameras = list(cameras)
+        self.backend = backend
+        n = len(self.cameras)
+        held = set(range(0, n, holdout_every)) if n >= 2 * holdout_every else {0} if n > 1 else set()
+        self.test_indices = sorted(held)
+        self.train_indices = [i for i in range(n) if i not in held]
+        self.background = tuple(float(v) for v in teacher.background)
+        self.bounds = teacher.scene.bounds()
+        self.points = self.point_colors = None
+        self._full: dict[int, np.ndarray] = {}
+
+    def image_size(self, i: int, xi: float = 1.0) -> tuple[int, int]:
+        cam = self.cameras[i].scaled(xi)
+        return cam.width, cam.height
+
+    def load_image(self, i: int, xi: float = 1.0) -> torch.Tensor:
+        """The teacher's render of view ``i`` at 100%, area-averaged to ``xi`` (float32 [h, w, 3])."""
+        from .formats.images import resize_image
+
+        full = self._full.get(i)
+        if full is None:
+            full = self.teacher.render(self.cameras[i], 1.0, backend=self.backend).image.numpy().astype(np.float32)
+            self._full[i] = full
+        w, h = self.image_size(i, xi)
+        return torch.from_numpy(resize_image(full, w, h) if (w, h) != full.shape[1::-1] else full.copy())
+
+
+# ================================================================================================ the run
+@dataclass
+class DistillResult:
+    model: SceneModel  # the student: leaves' features (and offsets) as its predictor regenerates them
+    predictor: object  # the residual predictor
+    proxy_mask: np.ndarray  # [M] bool, in the source's anchor order
+    iterations: int
+    seconds: float
+    views: TeacherViews
+    history: list[dict]
+
+
+def distill(source: SceneModel, config: FitConfig, *, views: TeacherViews | None = None, start_proxies=None,
+            log: ProgressFn | None = None, min_views: int = 32, lr_scale: float = 1.0) -> DistillResult:
+    """Fine-tune the proxy scene of ``source`` against ``views`` (default: ``TeacherViews`` of ``source`` itself).
+
+    ``config``: ``fit``'s configuration; stage 2 starts at once and the anchor set is frozen (``stage2_start`` and
+    ``update_until`` are set to 0 here). ``start_proxies``: (predictor, proxy mask) to start from (a fitted scene's).
+    ``lr_scale`` multiplies the learning rates of the anchors and the decoder (not the predictor's): a converged
+    scene is fine-tuned, and Adam's first steps move every parameter by about its learning rate.
+    """
+    log = log or (lambda s: None)
+    cfg = replace(config, proxies=True, stage2_start=0.0, update_until=0.0, checkpoint_every=0.0)
+    if lr_scale != 1.0:  # fine-tuning: the anchors' and the decoder's steps scaled, the new predictor's not
+        f = lambda t: (t[0] * lr_scale, t[1] * lr_scale)  # noqa: E731
+        cfg = replace(cfg, lr_feature=cfg.lr_feature * lr_scale, lr_offset=f(cfg.lr_offset),
+                      lr_scaling=cfg.lr_scaling * lr_scale, lr_mlp_opacity=f(cfg.lr_mlp_opacity),
+                      lr_mlp_cov=f(cfg.lr_mlp_cov), lr_mlp_color=f(cfg.lr_mlp_color), lr_mlp_embed=f(cfg.lr_mlp_embed))
+    if start_proxies is not None:
+        pc = start_proxies[0].config
+        cfg = replace(cfg, predictor="residual", predictor_hidden=pc.hidden, predictor_blocks=pc.n_blocks,
+                      predictor_context=pc.context, predict_offsets=pc.predict_offsets)
+    views = views or TeacherViews(source, teacher_cameras(source, min_views), backend=cfg.backend)
+    t0 = time.perf_counter()
+    tr = Trainer(views, cfg, "distill", log, start=source, start_proxies=start_proxies)
+    log(f"distill: {len(views.train_indices)} teacher views ({len(views.test_indices)} held out), "
+        f"{tr.anchors.num_anchors} anchors; iters {cfg.iters}, time budget {cfg.time_budget}")
+    run_until_done(tr, log, lambda st: f"xi {st['xi']:.2f}  gauss {st['gaussians']:7d}",
+                   lambda: {"anchors": tr.anchors.num_anchors})
+    res = tr.result()
+    res.model.cameras = list(source.cameras) if source.cameras else None
+    log(f"distill: {tr.iteration} iterations in {fmt_time(tr.elapsed)} "
+        f"({time.perf_counter() - t0:.1f} s with the teacher's renders)")
+    return DistillResult(res.model, tr.predictor.eval(), tr.proxy_mask.numpy().copy(), tr.iteration, tr.elapsed,
+                         views, tr.history)
+
+
+@torch.no_grad()
+def held_out_report(model: SceneModel, views: TeacherViews, resolutions=REPORT_RESOLUTIONS, *, max_views: int = 8,
+                    backend: str = "auto") -> dict:
+    """PSNR / SSIM of ``model`` against the teacher's anti-aliased renders on (up to ``max_views``) held-out views
+    at each resolution; means per resolution and over all."""
+    idx = views.test_indices[:max_views] or views.train_indices[:max_views]
+    rows = []
+    for xi in resolutions:
+        p, s = [], []
+        for i in idx:
+            gt = views.load_image(i, xi).numpy()
+            img = model.render(views.cameras[i], xi, backend=backend).image.clamp(0, 1).numpy()
+            p.append(psnr(img, gt))
+            s.append(ssim(img, gt))
+        rows.append({"xi": float(xi), "psnr": float(np.mean(p)), "ssim": _mean(s)})
+    return {"views": [int(i) for i in idx], "held_out": bool(views.test_indices), "per_resolution": rows,
+            "psnr": float(np.mean([r["psnr"] for r in rows])), "ssim": _mean([r["ssim"] for r in rows])}
+
+
+def _mean(values) -> float | None:
+    """Mean of the defined values (SSIM is undefined below 3 x 3 pixels), None when there are none."""
+    v = [x for x in values if x is not None]
+    return float(np.mean(v)) if v else None

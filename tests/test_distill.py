@@ -1,0 +1,180 @@
+"""The image-free encoder (``proxycodec.distill``, ``encode --distill``): teacher views and targets, fine-tuning
+for what the decoded scene renders, the held-out report, determinism, and how it meets fitted scenes."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+from click.testing import CliRunner
+from test_codec import FAST, tiny_model
+
+from proxycodec import codec
+from proxycodec.camera import orbit_cameras
+from proxycodec.distill import REPORT_RESOLUTIONS, TeacherViews, held_out_report, teacher_cameras
+from proxycodec.formats.images import resize_image
+from proxycodec.metrics import psnr
+from proxycodec.model import SceneModel
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+#: distillation knobs small enough for a test (the tiny scene renders at 32 x 24)
+QUICK = dict(FAST, distill=True, distill_iters=40, distill_views=12)
+
+
+def _model(n=200, seed=0) -> SceneModel:
+    m = tiny_model(n, seed)
+    return SceneModel(m.scene, m.decoder, orbit_cameras((0.0, 0.0, 0.1), 1.5, 12, width=32, height=24),
+                      m.background)
+
+
+def _render_psnr(a: SceneModel, b: SceneModel, cams) -> float:
+    return float(np.mean([psnr(a.render(c, 1.0).image.numpy(), b.render(c, 1.0).image.numpy()) for c in cams]))
+
+
+# ------------------------------------------------------------------------------------------------ teacher
+def test_automatic_views_look_at_the_scene_and_fill_up_to_the_minimum():
+    m = _model()
+    stored = list(m.cameras)
+    cams = teacher_cameras(m, 40)
+    assert cams[:len(stored)] == stored and len(cams) == 40
+    b = m.scene.bounds()
+    center = 0.5 * (b[0] + b[1])
+    for c in cams[len(stored):]:  # the centre projects to the image centre, in front of the camera
+        x = np.asarray(c.rotation) @ center + np.asarray(c.translation)
+        assert x[2] > 0 and abs(c.fx * x[0] / x[2] + c.cx - c.width / 2) < 1e-6
+        assert (c.width, c.height) == (32, 24)
+    assert teacher_cameras(m, 5) == stored  # enough stored views: none added
+    bare = SceneModel(m.scene, m.decoder, None, m.background)
+    assert len(teacher_cameras(bare, 20)) == 20  # no cameras at all: views all around
+
+
+def test_teacher_targets_are_the_100_percent_render_area_averaged():
+    m = _model()
+    v = TeacherViews(m, list(m.cameras), holdout_every=4)
+    assert v.test_indices == [0, 4, 8] and set(v.train_indices) == set(range(12)) - {0, 4, 8}
+    full = m.render(m.cameras[1], 1.0).image.numpy()
+    assert np.array_equal(v.load_image(1, 1.0).numpy(), full)
+    half = v.load_image(1, 0.5).numpy()
+    assert half.shape == (12, 16, 3)
+    np.testing.assert_allclose(half, full.reshape(12, 2, 16, 2, 3).mean((1, 3)), atol=1e-6)
+
+
+# ------------------------------------------------------------------------------------------------ encode
+@pytest.fixture(scope="module")
+def pair(tmp_path_factory):
+    d = tmp_path_factory.mktemp("distill")
+    m = _model()
+    plain = codec.encode(m, d / "plain.pxc", **FAST)
+    dist = codec.encode(m, d / "dist.pxc", **QUICK)
+    return m, plain, dist, d
+
+
+def test_distillation_fits_what_the_decoded_scene_renders(pair):
+    """Against the source's renders, the distilled container beats the L_recon-only predictor of the same size."""
+    m, plain, dist, _ = pair
+    cams = m.cameras
+    p_plain, p_dist = _render_psnr(plain.model, m, cams), _render_psnr(dist.model, m, cams)
+    assert p_dist > p_plain + 1.0, (p_plain, p_dist)
+    assert dist.meta["training"]["rendering_loss"] and not plain.meta["training"]["rendering_loss"]
+    assert "distill" not in plain.meta
+
+
+def test_the_report_measures_held_out_views_at_ten_resolutions(pair):
+    m, _, dist, d = pair
+    rep = dist.meta["distill"]["held_out"]
+    assert [r["xi"] for r in rep["per_resolution"]] == list(REPORT_RESOLUTIONS)
+    assert rep["held_out"] and rep["views"]
+    assert all(np.isfinite(r["psnr"]) and 0 < r["psnr"] < 100 for r in rep["per_resolution"])
+    assert rep["psnr"] == pytest.approx(np.mean([r["psnr"] for r in rep["per_resolution"]]))
+    # the report is what the decoded file renders: recomputed from the decoded container it is the same
+    views = TeacherViews(m, teacher_cameras(m, QUICK["distill_views"]))
+    again = held_out_report(codec.decode(d / "dist.pxc"), views)
+    assert again["views"] == rep["views"]
+    np.testing.assert_allclose([r["psnr"] for r in again["per_resolution"]],
+                               [r["psnr"] for r in rep["per_resolution"]], rtol=1e-6)
+    s = codec.stats(d / "dist.pxc")
+    assert s["distill"]["held_out"]["psnr"] == rep["psnr"]
+    assert s["distill"]["iterations"] == QUICK["distill_iters"] and dist.to_json()["distill"] == s["distill"]
+
+
+def test_distillation_is_deterministic(pair, tmp_path):
+    m, _, dist, d = pair
+    again = codec.encode(m, tmp_path / "again.pxc", **QUICK)
+    assert (tmp_path / "again.pxc").read_bytes() == (d / "dist.pxc").read_bytes()
+    assert again.file_bytes == dist.file_bytes
+
+
+def test_a_scene_without_a_stage2_predictor_is_distilled_by_default(tmp_path, monkeypatch):
+    from proxycodec import distill as distill_mod
+
+    calls = []
+    real = distill_mod.distill
+
+    def spy(*a, **k):
+        calls.append(k.get("start_proxies"))
+        return real(*a, **k)
+
+    monkeypatch.setattr(distill_mod, "distill", spy)
+    m = _model(120)
+    knobs = {k: v for k, v in QUICK.items() if k != "distill"}
+    codec.encode(m, tmp_path / "a.pxc", **{**knobs, "distill_iters": 2})
+    assert calls == [None]
+    codec.encode(m, tmp_path / "b.pxc", **{**knobs, "distill": False})
+    assert len(calls) == 1
+
+
+def test_bad_distillation_settings_are_user_errors(tmp_path):
+    from proxycodec import ProxycodecError
+
+    m = _model(60)
+    for bad in ({"distill_iters": 0}, {"distill_iters": None, "distill_time_budget": None},
+                {"distill_views": 0}, {"distill": False, "images": str(tmp_path)}):
+        with pytest.raises(ProxycodecError):
+            codec.encode(m, tmp_path / "x.pxc", **{**QUICK, **bad})
+    assert not (tmp_path / "x.pxc").exists()
+
+
+# ------------------------------------------------------------------------------------------------ fitted scenes
+def test_a_fitted_scene_keeps_its_fast_path_unless_told_and_then_starts_from_its_split(tmp_path):
+    """A stage-2 scene is encoded with its own predictor (no distillation); with ``distill=True`` the distillation
+    starts from its predictor and proxy split, which reach the container unchanged."""
+    from proxycodec.proxy import load_fitted_predictor, select_proxies
+    from proxycodec.proxy import ResidualPredictor
+    from proxycodec.netconfig import PredictorConfig
+
+    m = _model(150)
+    s = m.scene
+    mask = select_proxies(s.positions.numpy(), 0.15, 0.3, 0, "random")
+    torch.manual_seed(0)
+    pred = ResidualPredictor(PredictorConfig(hidden=16, n_blocks=1, dist_ref=s.voxel_size))
+    arrays = {"proxy_mask": mask.astype(np.uint8), **{f"predictor/{k}": v for k, v in pred.state_arrays().items()}}
+    ply, w = m.save(tmp_path / "fitted.ply", extra_meta={"fit": {"predictor": pred.config.to_json()}},
+                    extra_arrays=arrays)
+    assert load_fitted_predictor(w)[0] is not None
+    fast = codec.encode(ply, tmp_path / "fast.pxc", **{**QUICK, "distill": None})
+    assert "distill" not in fast.meta and fast.meta["proxy"]["source"] == "fit"
+    tuned = codec.encode(ply, tmp_path / "tuned.pxc", **QUICK)
+    assert tuned.meta["distill"]["iterations"] == QUICK["distill_iters"]
+    # the same split, in the stored order
+    c_fast, c_tuned = codec.load(tmp_path / "fast.pxc"), codec.load(tmp_path / "tuned.pxc")
+    assert np.array_equal(c_fast.sections["anchors/proxy_mask"], c_tuned.sections["anchors/proxy_mask"])
+    assert tuned.meta["predictor"]["hidden"] == 16
+
+
+# ------------------------------------------------------------------------------------------------ CLI
+def test_cli_encode_distils_and_reports(tmp_path):
+    from proxycodec.cli.main import cli
+
+    m = _model(120)
+    ply, _ = m.save(tmp_path / "s.ply")
+    r = CliRunner().invoke(cli, ["encode", str(ply), "-o", str(tmp_path / "s.pxc"), "--distill-iters", "3",
+                                 "--distill-views", "12", "--predictor-iters", "5", "--json"])
+    assert r.exit_code == 0, r.output
+    out = json.loads(r.stdout)
+    assert out["distill"]["iterations"] == 3 and len(out["distill"]["held_out"]["per_resolution"]) == 10
+    assert "decoded vs source renders on held-out views" in r.stderr
+    r = CliRunner().invoke(cli, ["encode", str(ply), "--images", str(tmp_path / "nope")])
+    assert r.exit_code == 2 and "Traceback" not in r.output
