@@ -84,10 +84,11 @@ class EncodeConfig:
     # None: when the scene has no stage-2 predictor (a fitted one is used as it is); True / False: always / never
     # (never: the predictor is fitted on feature distance, L_recon, alone).
     distill: bool | None = None
-    distill_iters: int | None = 1500
+    distill_iters: int | None = 4000
     distill_time_budget: float | None = None  # seconds; with distill_iters, whichever ends first
     distill_views: int = 32  # teacher views at least: automatic views are added around the scene up to this many
     distill_lr_scale: float = 1.0  # fit's learning rates of the anchors and the decoder times this (not the predictor's)
+    distill_lr_warmup: float = 0.05  # every learning rate ramps up over this fraction of the distillation
     images: str | None = None  # a dataset folder: distil against its photos instead of the source's renders
 
     def __post_init__(self) -> None:
@@ -262,7 +263,7 @@ def encode(
         source={"bytes": source_bytes, "name": os.path.basename(source_name)},
         encoder={"zstd_level": cfg.zstd_level, "proxycodec": _version()},
         **({} if distilled is None else {"distill": {
-            "iterations": distilled.iterations, "seconds": round(distilled.seconds, 3), "images": cfg.images,
+            "iterations": distilled.iterations, "images": cfg.images,
             "teacher_views": len(distilled.views.train_indices), "loss": "fit's rendering loss, random xi"}}))
     # 6. the decoded model, through the decoder's own path (so report.model == decode(out), bit for bit)
     err = ProxycodecError
@@ -280,7 +281,8 @@ def encode(
     return EncodeReport(
         path=Path(out), file_bytes=file_bytes, anchors=M, proxies=P, leaves=M - P, cell_size=cell_size,
         sections=[s.to_json() for s in infos], source_bytes=source_bytes,
-        seconds={"total": time.perf_counter() - t_start, "predictor": t_train}, training=training,
+        seconds={"total": time.perf_counter() - t_start, "predictor": t_train,
+                 **({} if distilled is None else {"distill": distilled.seconds})}, training=training,
         model=decoded, meta=meta)
 
 
@@ -297,7 +299,8 @@ def _distill(model: SceneModel, fitted: tuple, cfg: EncodeConfig, say: Progress)
         proxy_ratio=cfg.proxy_ratio, proxy_selection=cfg.proxy_selection, leaf_sample=cfg.leaf_sample,
         proxy_cell=float(cfg.cell_size) if cfg.cell_size else default_cell_size(pos, voxel, cfg.cell_target),
         predictor_hidden=cfg.predictor_hidden, predictor_blocks=cfg.predictor_blocks,
-        predictor_context=cfg.predictor_context, predict_offsets=bool(cfg.predict_offsets))
+        predictor_context=cfg.predictor_context, predict_offsets=bool(cfg.predict_offsets),
+        lr_warmup=cfg.distill_lr_warmup)
     views = None
     if cfg.images is not None:
         from .formats.datasets import load_dataset

@@ -74,17 +74,27 @@ def teacher_cameras(model: SceneModel, min_views: int, width: int = 256, height:
 
 class TeacherViews:
     """A dataset (the ``PosedImages`` interface the trainer reads) whose images are a teacher scene's renders at 100%,
-    area-resized to ``camera.scaled(xi)`` by the trainer's targets like any photo. Every ``holdout_every``-th camera
-    is held out (never trained on) for the report."""
+    area-resized to ``camera.scaled(xi)`` by the trainer's targets like any photo. ``held_out`` cameras (default:
+    the test cameras a ``fit`` recorded, ``camera_split``, when the teacher has them and they are its first cameras;
+    else every ``holdout_every``-th camera) are never trained on: they are the report's."""
 
-    def __init__(self, teacher: SceneModel, cameras: list[Camera], holdout_every: int = 8, backend: str = "auto"):
+    def __init__(self, teacher: SceneModel, cameras: list[Camera], holdout_every: int = 8, backend: str = "auto",
+                 held_out: list[int] | None = None):
         if not cameras:
             raise ProxycodecError("the scene has no cameras to distil from")
         self.teacher = teacher
         self.cameras = list(cameras)
         self.backend = backend
         n = len(self.cameras)
-        held = set(range(0, n, holdout_every)) if n >= 2 * holdout_every else {0} if n > 1 else set()
+        split = (teacher.meta.get("fit") or {}).get("camera_split") or {}
+        fitted_test = [int(i) for i in split.get("test", []) if isinstance(i, int) and 0 <= i < n]
+        if held_out is not None:
+            held = {int(i) for i in held_out if 0 <= int(i) < n}
+        elif fitted_test and len(fitted_test) < n and teacher.cameras and \
+                self.cameras[:len(teacher.cameras)] == list(teacher.cameras):
+            held = set(fitted_test)
+        else:
+            held = set(range(0, n, holdout_every)) if n >= 2 * holdout_every else {0} if n > 1 else set()
         self.test_indices = sorted(held)
         self.train_indices = [i for i in range(n) if i not in held]
         self.background = tuple(float(v) for v in teacher.background)

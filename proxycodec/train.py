@@ -109,6 +109,9 @@ class FitConfig:
     lr_mlp_color: tuple[float, float] = (0.008, 0.00005)
     lr_mlp_embed: tuple[float, float] = (0.004, 0.00004)
     lr_predictor: tuple[float, float] = (0.002, 0.00002)
+    # every learning rate ramps up linearly over this fraction of the run (0: none, as Scaffold-GS). Fine-tuning a
+    # converged scene needs it: Adam's first steps move every parameter by about its learning rate.
+    lr_warmup: float = 0.0
     # anchor growing / pruning (Scaffold-GS adjust_anchor; its 500/1500/15000 of 30000 iterations as fractions)
     start_stat: float = 0.0167
     update_from: float = 0.05
@@ -163,6 +166,8 @@ class FitConfig:
             raise ProxycodecError("proxy ratio and leaf sample fraction must be in (0, 1]")
         PredictorConfig(hidden=self.predictor_hidden, n_blocks=self.predictor_blocks,
                         context=self.predictor_context)  # validates width, depth and context
+        if not (0.0 <= self.lr_warmup < 1.0):
+            raise ProxycodecError(f"learning-rate warm-up must be a fraction of the run in [0, 1), got {self.lr_warmup}")
         if self.predictor_warmup < 0:
             raise ProxycodecError(f"predictor warm-up must be >= 0 iterations, got {self.predictor_warmup}")
         if self.recon_loss not in RECON_LOSSES:
@@ -353,6 +358,9 @@ class Trainer(TrainingRun):
                 lrs[name] = exp_lr(*groups[name.split(".")[1]], q)
             elif name.startswith("predictor."):
                 lrs[name] = exp_lr(*c.lr_predictor, p2 if c.predictor_lr_stage2 else p)
+        if c.lr_warmup > 0 and p < c.lr_warmup:
+            ramp = p / c.lr_warmup
+            lrs = {k: v * ramp for k, v in lrs.items()}
         return lrs
 
     def lambda_recon(self, p: float) -> float:
