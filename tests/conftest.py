@@ -123,3 +123,21 @@ def forged_tensor_pickle(shape, stride, numel: int, key: str = "0") -> bytes:
     buf = io.BytesIO()
     Pickler(buf, protocol=2).dump({"weight": Tensor()})
     return buf.getvalue()
+
+
+def write_corner_dataset(root: Path, size: int = 32) -> Path:
+    """A tiny Blender dataset of one corner of the built-in scene (the box and part of the floor) rendered from 10
+    orbit cameras at ``size`` px, every 5th a test view: what a few dozen ``fit`` iterations can learn."""
+    import torch
+
+    from proxycodec.camera import orbit_cameras
+    from proxycodec.model import SceneModel
+    from proxycodec.sample import sample_model
+
+    m = sample_model()
+    s = m.scene
+    lo, hi = torch.tensor([0.15, -0.85, -0.05]), torch.tensor([0.95, -0.05, 0.6])
+    corner = SceneModel(s.subset(((s.positions >= lo) & (s.positions <= hi)).all(1).nonzero().squeeze(1)), m.decoder)
+    cams = orbit_cameras((0.55, -0.45, 0.2), 1.8, 10, elevation_deg=35.0, fov_x_deg=45.0, width=size, height=size)
+    splits = {"train": [c for i, c in enumerate(cams) if i % 5 != 0], "test": [c for i, c in enumerate(cams) if i % 5 == 0]}
+    return write_blender(root, splits, lambda cam: corner.render(cam, 1.0).image)

@@ -64,21 +64,13 @@ def test_teacher_targets_are_the_100_percent_render_area_averaged():
 def trained(tmp_path_factory) -> SceneModel:
     """A small scene trained by ``fit`` (no proxies) on renders of a corner of the built-in scene: a decoder that
     behaves like real ones (a random one renders almost nothing but background)."""
-    from conftest import write_blender
+    from conftest import write_corner_dataset
 
     from proxycodec.formats.datasets import load_dataset
-    from proxycodec.sample import sample_model
     from proxycodec.train import FitConfig, fit
 
     d = tmp_path_factory.mktemp("trained")
-    m = sample_model()
-    s = m.scene
-    lo, hi = torch.tensor([0.15, -0.85, -0.05]), torch.tensor([0.95, -0.05, 0.6])
-    sub = s.subset(((s.positions >= lo) & (s.positions <= hi)).all(1).nonzero().squeeze(1))
-    corner = SceneModel(sub, m.decoder)
-    cams = orbit_cameras((0.55, -0.45, 0.2), 1.8, 10, elevation_deg=35.0, fov_x_deg=45.0, width=32, height=32)
-    splits = {"train": [c for i, c in enumerate(cams) if i % 5], "test": [c for i, c in enumerate(cams) if not i % 5]}
-    root = write_blender(d / "data", splits, lambda cam: corner.render(cam, 1.0).image)
+    root = write_corner_dataset(d / "data")
     cfg = FitConfig(iters=80, max_width=None, init_points=250, update_interval=10, proxies=False, checkpoint_every=0,
                     log_every=1e9, seed=3)
     fit(load_dataset(root), d / "fit.ply", cfg, dataset_root="tiny", log=lambda s: None)

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from conftest import write_blender
+from conftest import write_corner_dataset
 
 from proxycodec.camera import orbit_cameras
 from proxycodec.errors import ProxycodecError
@@ -27,18 +27,7 @@ SIZE = 32
 # ------------------------------------------------------------------------------------------------ fixtures
 @pytest.fixture(scope="module")
 def tiny_dataset(tmp_path_factory) -> Path:
-    from proxycodec.model import SceneModel
-    from proxycodec.sample import sample_model
-
-    root = tmp_path_factory.mktemp("tiny_blender")
-    m = sample_model()
-    s = m.scene
-    lo, hi = torch.tensor([0.15, -0.85, -0.05]), torch.tensor([0.95, -0.05, 0.6])
-    sub = s.subset(((s.positions >= lo) & (s.positions <= hi)).all(1).nonzero().squeeze(1))
-    model = SceneModel(sub, m.decoder)
-    cams = orbit_cameras((0.55, -0.45, 0.2), 1.8, 10, elevation_deg=35.0, fov_x_deg=45.0, width=SIZE, height=SIZE)
-    splits = {"train": [c for i, c in enumerate(cams) if i % 5 != 0], "test": [c for i, c in enumerate(cams) if i % 5 == 0]}
-    return write_blender(root, splits, lambda cam: model.render(cam, 1.0).image)
+    return write_corner_dataset(tmp_path_factory.mktemp("tiny_blender"), SIZE)
 
 
 @pytest.fixture(scope="module")
