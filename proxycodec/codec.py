@@ -289,7 +289,7 @@ def encode(
 def _distill(model: SceneModel, fitted: tuple, cfg: EncodeConfig, say: Progress):
     """The proxy scene fine-tuned against the source's renders (or ``cfg.images``' photos): ``distill.distill``
     with fit's configuration made from the encode knobs."""
-    from .distill import TeacherViews, distill, teacher_cameras
+    from .distill import distill
     from .train import FitConfig
 
     pos = model.scene.positions.detach().numpy()

@@ -14,7 +14,6 @@ from test_codec import FAST, tiny_model
 from proxycodec import codec
 from proxycodec.camera import orbit_cameras
 from proxycodec.distill import REPORT_RESOLUTIONS, TeacherViews, held_out_report, teacher_cameras
-from proxycodec.formats.images import resize_image
 from proxycodec.model import SceneModel
 
 pytestmark = pytest.mark.usefixtures("one_thread")

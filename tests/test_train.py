@@ -17,7 +17,6 @@ import pytest
 import torch
 from conftest import write_corner_dataset
 
-from proxycodec.camera import orbit_cameras
 from proxycodec.errors import ProxycodecError
 from proxycodec.metrics import dssim, mse_to_psnr, psnr, ssim, ssim_torch
 
