@@ -145,7 +145,8 @@ def distill(source: SceneModel, config: FitConfig, *, views: TeacherViews | None
         f = lambda t: (t[0] * lr_scale, t[1] * lr_scale)  # noqa: E731
         cfg = replace(cfg, lr_feature=cfg.lr_feature * lr_scale, lr_offset=f(cfg.lr_offset),
                       lr_scaling=cfg.lr_scaling * lr_scale, lr_mlp_opacity=f(cfg.lr_mlp_opacity),
-                      lr_mlp_cov=f(cfg.lr_mlp_cov), lr_mlp_color=f(cfg.lr_mlp_color), lr_mlp_embed=f(cfg.lr_mlp_embed))
+                      lr_mlp_cov=f(cfg.lr_mlp_cov), lr_mlp_color=f(cfg.lr_mlp_color), lr_mlp_embed=f(cfg.lr_mlp_embed),
+                      lr_mlp_feature_bank=f(cfg.lr_mlp_feature_bank))
     if start_proxies is not None:
         pc = start_proxies[0].config
         cfg = replace(cfg, predictor="residual", predictor_hidden=pc.hidden, predictor_blocks=pc.n_blocks,

@@ -108,6 +108,7 @@ class FitConfig:
     lr_mlp_cov: tuple[float, float] = (0.004, 0.004)
     lr_mlp_color: tuple[float, float] = (0.008, 0.00005)
     lr_mlp_embed: tuple[float, float] = (0.004, 0.00004)
+    lr_mlp_feature_bank: tuple[float, float] = (0.01, 0.00001)  # imported Scaffold-GS decoders with a feature bank
     lr_predictor: tuple[float, float] = (0.002, 0.00002)
     # every learning rate ramps up linearly over this fraction of the run (0: none, as Scaffold-GS). Fine-tuning a
     # converged scene needs it: Adam's first steps move every parameter by about its learning rate.
@@ -350,7 +351,7 @@ class Trainer(TrainingRun):
         lrs: dict[str, float] = {"features": c.lr_feature, "offsets": exp_lr(*c.lr_offset, p),
                                  "scalings": c.lr_scaling}
         groups = {"mlp_opacity": c.lr_mlp_opacity, "mlp_cov": c.lr_mlp_cov, "mlp_color": c.lr_mlp_color,
-                  "mlp_embed": c.lr_mlp_embed}
+                  "mlp_embed": c.lr_mlp_embed, "mlp_feature_bank": c.lr_mlp_feature_bank}
         p2 = min(1.0, max(0.0, (p - c.stage2_start) / (1.0 - c.stage2_start))) if c.stage2_start < 1 else 1.0
         for name in self.opt.params:
             if name.startswith("decoder."):

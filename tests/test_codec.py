@@ -181,7 +181,7 @@ class TestExactness:
 
     def test_lossless_bits_and_predicted_offsets(self, tmp_path):
         m = tiny_model(150)
-        r = codec.encode(m, tmp_path / "a.pxc", distill=False, feature_bits=32, offset_bits=32, scaling_bits=32,
+        r = codec.encode(m, tmp_path / "a.pxc", feature_bits=32, offset_bits=32, scaling_bits=32,
                          weights_dtype="f32", predict_offsets=True, **FAST)
         dec = codec.decode(tmp_path / "a.pxc")
         _assert_same(dec, r.model)
