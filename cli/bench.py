@@ -25,12 +25,15 @@ from .common import config_option, user_errors
 @click.option("--fresh", is_flag=True, help="Ignore the results of an earlier run in the folder (default: resume).")
 @click.option("--predictor-iters", type=int, default=None,
               help="Encode-time predictor iterations at every point [default: encode's default, 2000].")
+@click.option("--distill-iters", type=int, default=None,
+              help="Distillation iterations of the default point, for a scene without a stage-2 predictor "
+                   "[default: encode's default].")
 @config_option("proxycodec.codec:EncodeConfig", "--seed", type=int, show_default=True,
                help="Encode seed (proxy selection, predictor).")
 @click.option("--backend", default="auto", show_default=True, type=click.Choice(["auto", "reference", "cpu", "cuda"]))
 @user_errors
 def bench(scene, dataset, out_dir, quick, views, max_width, test_every, sweeps, in_process, fresh, predictor_iters,
-          seed, backend) -> None:
+          distill_iters, seed, backend) -> None:
     """Sweep the encode settings (proxy ratio, leaf sample fraction, quantisation bits, zstd level, predictor depth)
     on SCENE (an anchor PLY + weights, e.g. from `proxycodec fit`) and evaluate every container on DATASET's test
     views: bytes, PSNR/SSIM over ten resolutions, encode/decode/render times, peak RSS per step. Writes
@@ -47,7 +50,7 @@ def bench(scene, dataset, out_dir, quick, views, max_width, test_every, sweeps, 
     paths = run_bench(scene, dataset, out, quick=quick, views=views, max_width=max_width, test_every=test_every,
                       sweeps=[s.strip() for s in sweeps.split(",") if s.strip()] if sweeps else None,
                       isolate=not in_process, fresh=fresh, backend=backend, predictor_iters=predictor_iters,
-                      seed=seed,
+                      distill_iters=distill_iters, seed=seed,
                       log=lambda s: click.echo(s, err=True))
     click.echo(Path(paths["markdown"]).read_text())
     click.echo("wrote " + ", ".join(str(p) for p in paths.values()))

@@ -334,7 +334,8 @@ def test_bench_quick_end_to_end_in_process(tiny, tmp_path):
     data, ply = tiny
     out = tmp_path / "b"
     r = CliRunner().invoke(_cli(), ["bench", str(ply), str(data), "--quick", "-o", str(out), "--in-process",
-                                    "--views", "1", "--sweeps", "proxy_ratio,zstd_level", "--predictor-iters", "100"])
+                                    "--views", "1", "--sweeps", "proxy_ratio,zstd_level", "--predictor-iters", "100",
+                                    "--distill-iters", "5"])
     assert r.exit_code == 0, r.output
     res = _check_outputs(out)
     pts = {p["id"]: p for p in res["points"]}
@@ -359,7 +360,7 @@ def test_bench_subprocess_steps_and_resume(tiny, tmp_path):
     data, ply = tiny
     out = tmp_path / "s"
     logs = []
-    run_bench(str(ply), str(data), str(out), quick=True, views=1, sweeps=["zstd_level"], predictor_iters=50,
+    run_bench(str(ply), str(data), str(out), quick=True, views=1, sweeps=["zstd_level"], predictor_iters=50, distill_iters=5,
               log=logs.append)
     res = _check_outputs(out)
     steps = res["steps"]
@@ -367,7 +368,7 @@ def test_bench_subprocess_steps_and_resume(tiny, tmp_path):
     assert all(s["result"]["peak_rss_mb"] > 10 for s in steps.values())
     assert {s["kind"] for s in steps.values()} == {"encode", "eval"}
     n_logged = len(logs)
-    run_bench(str(ply), str(data), str(out), quick=True, views=1, sweeps=["zstd_level"], predictor_iters=50,
+    run_bench(str(ply), str(data), str(out), quick=True, views=1, sweeps=["zstd_level"], predictor_iters=50, distill_iters=5,
               log=logs.append)
     assert len(logs) == n_logged  # nothing ran again
     assert len(json.loads((out / "results.json").read_text())["runs"]) == 2

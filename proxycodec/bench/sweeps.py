@@ -71,7 +71,8 @@ def eval_step(runner: Runner, sid: str, model_path: str | os.PathLike, ev: EvalS
 
 def encode_sweep_plan(quick: bool, sweeps: Sequence[str] | None = None) -> list[tuple[str, str, dict]]:
     """(sweep, label, EncodeConfig knobs) one setting at a time around the defaults; the encode-time predictor is
-    refitted (``use_fitted=False``) at every point, since proxies and predictor change with the knobs."""
+    refitted (``use_fitted=False``) on L_recon at every point (``distill=False``: a distillation per point would cost
+    minutes each), since proxies and predictor change with the knobs."""
     from ..codec import EncodeConfig
 
     d = EncodeConfig()
@@ -97,7 +98,7 @@ def encode_sweep_plan(quick: bool, sweeps: Sequence[str] | None = None) -> list[
                 knobs = {name: v}
                 label = f"{v:g}"
             plan.append((name, label, {"use_fitted": False, **knobs}))
-    base = {"use_fitted": False, "proxy_ratio": d.proxy_ratio, "leaf_sample": d.leaf_sample,
+    base = {"use_fitted": False, "distill": False, "proxy_ratio": d.proxy_ratio, "leaf_sample": d.leaf_sample,
             "offset_bits": d.offset_bits, "feature_bits": d.feature_bits, "scaling_bits": d.scaling_bits,
             "zstd_level": d.zstd_level, "predictor_blocks": d.predictor_blocks}
     return [(n, lab, {**base, **k}) for n, lab, k in plan]
@@ -108,7 +109,7 @@ def knob_id(knobs: dict) -> str:
     from ..codec import EncodeConfig
 
     d = EncodeConfig()
-    diff = {k: v for k, v in sorted(knobs.items()) if k != "use_fitted" and getattr(d, k) != v}
+    diff = {k: v for k, v in sorted(knobs.items()) if k not in ("use_fitted", "distill") and getattr(d, k) != v}
     if not diff:
         return "encode default (refit)"
     return "encode " + ", ".join(f"{k}={v}" for k, v in diff.items())
@@ -161,7 +162,8 @@ def run_encode_sweeps(runner: Runner, scene: str, source_ply: str | os.PathLike,
 def run_bench(scene_ply: str, dataset: str, out_dir: str, *, quick: bool = False, views: int | None = None,
               max_width: int | None = None, test_every: int = 8, sweeps: Sequence[str] | None = None,
               isolate: bool = True, fresh: bool = False, seed: int = 0, backend: str = "auto",
-              predictor_iters: int | None = None, log: Callable[[str], None] | None = None) -> dict[str, Path]:
+              predictor_iters: int | None = None, distill_iters: int | None = None,
+              log: Callable[[str], None] | None = None) -> dict[str, Path]:
     """``proxycodec bench``: the encode-side sweeps on a user's fitted scene (anchor PLY + weights sidecar)."""
     from ..formats.container import read_container
     from ..model import weights_path_for
@@ -180,6 +182,8 @@ def run_bench(scene_ply: str, dataset: str, out_dir: str, *, quick: bool = False
     common = {"seed": seed} if seed else {}
     if predictor_iters is not None:
         common["predictor_iters"] = int(predictor_iters)
+    if distill_iters is not None:  # the default point of a scene without a stage-2 predictor distils
+        common["distill_iters"] = int(distill_iters)
     meta = {"kind": "proxycodec.bench", "seed": seed, "quick": quick, "machine": machine_info(),
             "versions": versions(), "encode_knobs_on_every_point": common,
             "scenes": {name: {"scene": scene_ply, "dataset": dataset, "reference width": max_width,
