@@ -219,6 +219,14 @@ def stats(file, as_json) -> None:
         p = s.get("proxy") or {}
         click.echo(f"  positions {s['positions']}, offsets {s['offsets']}, bits {s['quant_bits']}, "
                    f"weights {s['weights_dtype']}, cell {p.get('cell_size_voxels', 0):g} voxels, seed {p.get('seed')}")
+        d = s.get("distill") or {}
+        rep = d.get("held_out") if isinstance(d, dict) else None
+        if isinstance(rep, dict) and isinstance(rep.get("per_resolution"), list):
+            src = f"the photos of {d['images']}" if d.get("images") else "the source's renders"
+            click.echo(f"  distilled {d.get('iterations')} iterations against {src}; decoded vs source renders on "
+                       f"{len(rep.get('views', []))} held-out views: "
+                       + "  ".join(f"{r['xi']:g}: {r['psnr']:.2f}" for r in rep["per_resolution"])
+                       + f"  (mean {rep.get('psnr', float('nan')):.2f} dB)")
     click.echo(f"  {'section':34s} {'dtype':>6s} {'shape':>14s} {'stored':>10s} {'raw':>10s}")
     click.echo(f"  {'(header + table of contents)':34s} {'':>6s} {'':>14s} {s['header_and_toc_bytes']:10,}")
     for sec in s["sections"]:

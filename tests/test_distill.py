@@ -195,5 +195,7 @@ def test_cli_encode_distils_and_reports(trained, tmp_path):
     out = json.loads(r.stdout)
     assert out["distill"]["iterations"] == 3 and len(out["distill"]["held_out"]["per_resolution"]) == 10
     assert "decoded vs source renders on held-out views" in r.stderr
+    s = CliRunner().invoke(cli, ["stats", str(tmp_path / "s.pxc")])
+    assert s.exit_code == 0 and "distilled 3 iterations against the source's renders" in s.output, s.output
     r = CliRunner().invoke(cli, ["encode", str(ply), "--images", str(tmp_path / "nope")])
     assert r.exit_code == 2 and "Traceback" not in r.output
