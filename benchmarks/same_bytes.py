@@ -51,10 +51,11 @@ def run(out: Path, full: bool, inputs: Path | None) -> dict:
     pc("sample", "s1.ply", "--seed", "0")
     pc("sample", "s2.ply", "--seed", "0")
     src = inputs or out
-    if src != out:
+    if src != out:  # the same file name: a container records its source's name
+        (out / "in").mkdir(exist_ok=True)
         for f in ("s1.ply", "s1.weights.pxc"):
-            shutil.copy(src / f, out / f"in_{f}")
-        scene = "in_s1.ply"
+            shutil.copy(src / f, out / "in" / f)
+        scene = "in/s1.ply"
     else:
         scene = "s1.ply"
     helptext = subprocess.run(["proxycodec", "encode", "--help"], capture_output=True, text=True).stdout
