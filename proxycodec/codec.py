@@ -319,8 +319,8 @@ def _held_out(decoded: SceneModel, source: SceneModel, distilled, cfg: EncodeCon
 
     views = distilled.views
     if not isinstance(views, TeacherViews):  # distilled against photos: the report still compares with the source
-        views = TeacherViews(source, [views.cameras[i] for i in views.test_indices] or list(views.cameras))
-        views.test_indices, views.train_indices = list(range(len(views.cameras))), []
+        cams = [views.cameras[i] for i in views.test_indices] or list(views.cameras)
+        views = TeacherViews(source, cams, held_out=list(range(len(cams))))
     rep = held_out_report(decoded, views)
     say("decoded vs source renders on held-out views: " + "  ".join(
         f"{r['xi']:.1f}: {r['psnr']:.2f}" for r in rep["per_resolution"]) + f"  (mean {rep['psnr']:.2f} dB)")

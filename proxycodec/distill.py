@@ -13,7 +13,7 @@ at random resolutions in [0.1, 1]. The anchor set never changes. Held-out views 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
 
 import numpy as np
 import torch
@@ -113,7 +113,9 @@ class TeacherViews:
         full = self._full.get(i)
         if full is None:
             full = self.teacher.render(self.cameras[i], 1.0, backend=self.backend).image.numpy().astype(np.float32)
-            self._full[i] = full
+            if i in self.test_indices:  # the report reads them at every resolution; training views are cached by
+                self._full[i] = full     # the trainer's targets (loop.TargetImages), not twice
+
         w, h = self.image_size(i, xi)
         return torch.from_numpy(resize_image(full, w, h) if (w, h) != full.shape[1::-1] else full.copy())
 
@@ -141,12 +143,11 @@ def distill(source: SceneModel, config: FitConfig, *, views: TeacherViews | None
     """
     log = log or (lambda s: None)
     cfg = replace(config, proxies=True, stage2_start=0.0, update_until=0.0, checkpoint_every=0.0)
-    if lr_scale != 1.0:  # fine-tuning: the anchors' and the decoder's steps scaled, the new predictor's not
-        f = lambda t: (t[0] * lr_scale, t[1] * lr_scale)  # noqa: E731
-        cfg = replace(cfg, lr_feature=cfg.lr_feature * lr_scale, lr_offset=f(cfg.lr_offset),
-                      lr_scaling=cfg.lr_scaling * lr_scale, lr_mlp_opacity=f(cfg.lr_mlp_opacity),
-                      lr_mlp_cov=f(cfg.lr_mlp_cov), lr_mlp_color=f(cfg.lr_mlp_color), lr_mlp_embed=f(cfg.lr_mlp_embed),
-                      lr_mlp_feature_bank=f(cfg.lr_mlp_feature_bank))
+    if lr_scale != 1.0:  # fine-tuning: every learning rate of the anchors and the decoder scaled, the predictor's not
+        scaled = {f.name: (tuple(v * lr_scale for v in lr) if isinstance(lr, tuple) else lr * lr_scale)
+                  for f in fields(cfg) if f.name.startswith("lr_") and f.name not in ("lr_predictor", "lr_warmup")
+                  for lr in (getattr(cfg, f.name),)}
+        cfg = replace(cfg, **scaled)
     if start_proxies is not None:
         pc = start_proxies[0].config
         cfg = replace(cfg, predictor="residual", predictor_hidden=pc.hidden, predictor_blocks=pc.n_blocks,
