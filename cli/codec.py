@@ -11,6 +11,7 @@ import click
 
 from ..errors import ProxycodecError
 from .common import config_option, parse_resolutions, render_views, user_errors
+from .convert import convert_options
 
 #: An option whose default is ``EncodeConfig``'s field of the same name.
 encode_option = functools.partial(config_option, "proxycodec.codec:EncodeConfig")
@@ -60,11 +61,15 @@ def _stderr(msg: str) -> None:
                help="Teacher views at least (automatic views around the scene are added up to this many).")
 @encode_option("--images", type=click.Path(exists=True, file_okay=False),
                help="Distil against this dataset's photos (Blender or COLMAP folder) instead of the source's renders.")
+@click.option("--keep-anchor-scene", type=click.Path(dir_okay=False), default=None,
+              help="An INRIA 3DGS PLY: keep the converted anchor scene (PLY + weights) here.")
+@convert_options
 @click.option("--json", "as_json", is_flag=True, help="Print the encode report as JSON on stdout.")
 @user_errors
 def encode(scene, out, weights, proxy_ratio, proxy_selection, cell_size, feature_bits, offset_bits, scaling_bits,
            weights_dtype, predict_offsets, max_cameras, drop_dead_offsets, predictor_iters, leaf_sample, zstd_level, seed,
-           refit_predictor, distill, distill_iters, distill_time_budget, distill_views, images, as_json) -> None:
+           refit_predictor, distill, distill_iters, distill_time_budget, distill_views, images, keep_anchor_scene,
+           voxel_size, views, view_size, background, max_width, as_json) -> None:
     """Compress an anchor scene (Scaffold-GS PLY + weights sidecar, or a trained Scaffold-GS output: its folder or
     its point_cloud.ply with the MLP files beside it) to a proxy-anchor container.
 
@@ -72,19 +77,34 @@ def encode(scene, out, weights, proxy_ratio, proxy_selection, cell_size, feature
     it is used as it is. Any other scene is distilled: the proxy scene (proxies, residual predictor, decoder) is
     fine-tuned against the source scene's own renders at random resolutions, and the report gives the decoded
     scene's PSNR/SSIM against the source on held-out views at 10%..100%.
+
+    An INRIA 3DGS PLY is first converted (`proxycodec convert`: anchors from its Gaussians, trained against its own
+    renders for --distill-iters / --distill-time-budget), then its anchor scene is encoded.
     """
     from .. import codec
+    from ..explicit import is_inria_ply
 
     p = Path(scene)
     out = out or str(p.resolve().with_name(p.resolve().name + ".pxc") if p.is_dir() else p.with_suffix(".pxc"))
-    source = (scene, weights) if weights else scene
-    r = codec.encode(source, out, proxy_ratio=proxy_ratio, proxy_selection=proxy_selection, cell_size=cell_size,
-                     feature_bits=feature_bits, offset_bits=offset_bits, scaling_bits=scaling_bits,
-                     weights_dtype=weights_dtype, predict_offsets=predict_offsets, max_cameras=max_cameras,
-                     predictor_iters=predictor_iters, leaf_sample=leaf_sample, zstd_level=zstd_level, seed=seed,
-                     use_fitted=not refit_predictor, drop_dead_offsets=drop_dead_offsets, distill=distill,
-                     distill_iters=distill_iters, distill_time_budget=distill_time_budget,
-                     distill_views=distill_views, images=images, progress=_stderr)
+    knobs = dict(proxy_ratio=proxy_ratio, proxy_selection=proxy_selection, cell_size=cell_size,
+                 feature_bits=feature_bits, offset_bits=offset_bits, scaling_bits=scaling_bits,
+                 weights_dtype=weights_dtype, predict_offsets=predict_offsets, max_cameras=max_cameras,
+                 predictor_iters=predictor_iters, leaf_sample=leaf_sample, zstd_level=zstd_level, seed=seed)
+    if not p.is_dir() and is_inria_ply(p):
+        from ..convert import convert_and_encode
+        from .convert import make_config
+
+        if images or weights or distill is False:
+            raise ProxycodecError("--images, --weights and --no-distill do not apply to a 3DGS PLY (it is converted "
+                                  "against its own renders)", p)
+        cfg = make_config(distill_iters, distill_time_budget, seed, voxel_size, views, view_size, background,
+                          max_width)
+        _, r = convert_and_encode(p, out, cfg, keep=keep_anchor_scene, log=_stderr, **knobs)
+    else:
+        source = (scene, weights) if weights else scene
+        r = codec.encode(source, out, **knobs, use_fitted=not refit_predictor, drop_dead_offsets=drop_dead_offsets,
+                         distill=distill, distill_iters=distill_iters, distill_time_budget=distill_time_budget,
+                         distill_views=distill_views, images=images, progress=_stderr)
     if as_json:
         click.echo(json.dumps(r.to_json(), indent=2))
     else:
@@ -192,12 +212,26 @@ def _decode_lite(container):
 @click.option("--json", "as_json", is_flag=True, help="Everything as JSON (metadata included).")
 @user_errors
 def stats(file, as_json) -> None:
-    """Sizes and counts of a container, an anchor PLY or a Scaffold-GS output."""
+    """Sizes and counts of a container, an anchor PLY, a Scaffold-GS output or an INRIA 3DGS PLY (the bytes of
+    each part, adding up to the file)."""
     from .. import codec
 
     s = codec.stats(file)
     if as_json:
         click.echo(json.dumps(s, indent=2))
+        return
+    if s["type"] == "inria-3dgs-ply":
+        click.echo(f"{s['file']}: INRIA 3DGS PLY, {s['gaussians']:,} Gaussians, SH degree {s['sh_degree']}, "
+                   f"{s['file_bytes']:,} B" + (f" ({s['bytes_per_gaussian']:.0f} B per Gaussian)"
+                                               if s["gaussians"] else ""))
+        click.echo(f"  {'header':10s} {s['header_bytes']:12,} B")
+        for k, v in s["bytes_by_group"].items():
+            if v:
+                click.echo(f"  {k:10s} {v:12,} B")
+        if s["trailing_bytes"]:
+            click.echo(f"  {'trailing':10s} {s['trailing_bytes']:12,} B")
+        click.echo(f"  `proxycodec convert {s['file']} -o scene.ply` makes an anchor scene of it; "
+                   f"`proxycodec encode {s['file']}` converts and compresses it")
         return
     if s["type"] == "ply":
         sg = s.get("scaffold_gs")
@@ -206,8 +240,12 @@ def stats(file, as_json) -> None:
         click.echo(f"{s['file']}: {what}, {s['anchors']} anchors")
         click.echo(f"  PLY {s['file_bytes']:,} B + {'MLPs' if sg else 'weights'} {s['weights_bytes'] or 0:,} B = "
                    f"{s['total_bytes']:,} B ({s['bits_per_anchor']:.0f} bits/anchor)" if s["anchors"] else "  empty")
+        click.echo(f"  {'header':10s} {s['header_bytes']:12,} B")
         for k, v in s["raw_bytes_by_group"].items():
-            click.echo(f"  {k:10s} {v:12,} B")
+            if v or k != "other":
+                click.echo(f"  {k:10s} {v:12,} B")
+        if s["trailing_bytes"]:
+            click.echo(f"  {'trailing':10s} {s['trailing_bytes']:12,} B")
         return
     fmt = f" (scene format {s['scene_format']})" if s.get("scene_format") is not None else ""
     click.echo(f"{s['file']}: proxycodec container v{s['format_version']}, kind {s['kind']}{fmt}, "

@@ -34,12 +34,12 @@ def sample(out: str, seed: int) -> None:
               type=click.Choice(["auto", "reference", "cpu", "cuda"]), help="Compositing backend.")
 @user_errors
 def render(scene: str, res: str, out_dir: str, views: tuple[int, ...], backend: str) -> None:
-    """Render an anchor scene (PLY + weights, or a trained Scaffold-GS output) at the given resolutions to PNG
-    files."""
-    from ..model import SceneModel
-    from ..scaffold_gs import is_scaffold_output, load_scaffold_output
+    """Render a scene at the given resolutions to PNG files: an anchor scene (PLY + weights, or a trained
+    Scaffold-GS output), a container, or an INRIA 3DGS PLY (as plain 3DGS, its cameras.json's views when it has
+    one)."""
+    from ..scenes import load_any
 
-    model = load_scaffold_output(scene) if is_scaffold_output(scene) else SceneModel.load(scene)
+    model = load_any(scene)
     render_views(model, parse_resolutions(res), Path(out_dir), list(views) or None, backend)
 
 

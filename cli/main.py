@@ -14,6 +14,7 @@ from ..threads import set_threads
 from .bench import bench
 from .codec import decode, encode, stats
 from .commands import demo, render, sample
+from .convert import convert
 from .fit import eval_cmd, fit
 
 
@@ -27,7 +28,7 @@ def cli(threads: int | None) -> None:
     set_threads(threads)
 
 
-for _command in (sample, render, demo, encode, decode, stats, fit, eval_cmd, bench):
+for _command in (sample, render, demo, fit, convert, encode, decode, stats, eval_cmd, bench):
     cli.add_command(_command)
 
 

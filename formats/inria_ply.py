@@ -163,7 +163,7 @@ def _check_layout(path, header: PlyHeader) -> tuple[int, bool, list[str], list[s
     dc = indexed_names(path, header, "f_dc_")
     if not dc:
         hint = (
-            " (it looks like a Scaffold-GS anchor PLY: use read_scaffold_ply)"
+            " (it is a Scaffold-GS anchor PLY: `proxycodec encode`, `render` and `stats` take it)"
             if "f_anchor_feat_0" in names
             else ""
         )

@@ -155,7 +155,9 @@ def _check_layout(path, header: PlyHeader) -> tuple[list[str], list[str], list[s
     offs = indexed_names(path, header, "f_offset_")
     feats = indexed_names(path, header, "f_anchor_feat_")
     if not offs or not feats:
-        hint = " (it looks like an INRIA 3DGS PLY: use read_inria_ply)" if "f_dc_0" in names else ""
+        hint = (" (it is an INRIA 3DGS PLY: `proxycodec render` and `eval` take it as it is, `proxycodec convert` "
+                "makes an anchor scene of it, `proxycodec encode` converts and compresses it)"
+                if "f_dc_0" in names else "")
         raise ProxycodecError(
             "not a Scaffold-GS anchor PLY: no f_offset_* / f_anchor_feat_* properties" + hint, path
         )

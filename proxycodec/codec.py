@@ -173,6 +173,11 @@ def _source_model(source) -> tuple[SceneModel, int | None, str, tuple]:
         if is_scaffold_output(source):  # a trained Scaffold-GS output: PLY + its MLP files (scaffold_gs.py)
             model = load_scaffold_output(source)
             return model, model.meta["scaffold_gs"]["bytes"], str(Path(source)), (None, None)
+        from .explicit import is_inria_ply
+
+        if is_inria_ply(source):
+            raise ProxycodecError("is an INRIA 3DGS PLY, not an anchor scene: `proxycodec encode` converts it "
+                                  "first (or `proxycodec convert`; in Python, proxycodec.convert)", source)
         ply, w = Path(source), weights_path_for(source)
     else:
         raise ProxycodecError(f"encode expects a SceneModel, a PLY path or (PLY, weights) paths, "
@@ -209,6 +214,7 @@ def encode(
     *,
     predictor: ResidualPredictor | None = None,
     progress: Progress | None = None,
+    extra_meta: dict | None = None,
     **knobs,
 ) -> EncodeReport:
     """Compress an anchor scene to a container at ``out`` (written atomically).
@@ -216,6 +222,7 @@ def encode(
     ``source``: a ``SceneModel``, the path of an anchor PLY (weights sidecar beside it), or (PLY, weights) paths.
     Knobs: the fields of ``EncodeConfig`` (given as ``config`` or as keyword arguments). ``predictor``: a trained
     ``ResidualPredictor`` (e.g. from stage-2 training) to fine-tune for ``predictor_iters`` (0: keep as is).
+    ``extra_meta``: JSON-able entries added to the container's metadata (``convert`` records the conversion).
     """
     unknown = set(knobs) - set(EncodeConfig.__dataclass_fields__)
     if unknown:
@@ -272,6 +279,8 @@ def encode(
         decoded = _drop_dead_offsets(decoded, sections, meta, q, cfg.dead_threshold, say)
     if distilled is not None:
         meta["distill"]["held_out"] = _held_out(decoded, source_model, distilled, cfg, say)
+    for k, v in (extra_meta or {}).items():
+        meta.setdefault(k, _jsonable(v))
     packed, meta["weights_layout"] = pack_weights(sections)
     file_bytes = write_container(out, meta, packed, level=cfg.zstd_level)
     _, _, infos, _ = read_header(out)
@@ -531,7 +540,8 @@ def _model_from_sections_unchecked(meta: dict, sections: dict[str, np.ndarray], 
 
 # ---------------------------------------------------------------------------------------------- stats
 def stats(path: str | os.PathLike) -> dict:
-    """Sizes and counts of a scene container, any proxycodec container, an anchor PLY or a Scaffold-GS output."""
+    """Sizes and counts of a scene container, any proxycodec container, an anchor PLY, a Scaffold-GS output or an
+    INRIA 3DGS PLY."""
     path = Path(path)
     scaffold = find_scaffold_files(path)
     if scaffold is not None:  # its PLY, with the MLP files as the weights
@@ -544,7 +554,36 @@ def stats(path: str | os.PathLike) -> dict:
         raise ProxycodecError("is a directory", path) from None
     if head == MAGIC:
         return _container_stats(path)
+    from .explicit import is_inria_ply
+
+    if is_inria_ply(path):
+        return _inria_stats(path)
     return _ply_stats(path)
+
+
+#: INRIA 3DGS PLY properties by what they hold (``stats``)
+INRIA_GROUPS = {"positions": ("x", "y", "z"), "normals": ("nx", "ny", "nz"), "sh_dc": ("f_dc_",),
+                "sh_rest": ("f_rest_",), "opacity": ("opacity",), "scales": ("scale_",), "rotations": ("rot_",)}
+
+
+def _inria_stats(path: Path) -> dict:
+    """An INRIA 3DGS PLY: Gaussian count, SH degree and the bytes of each attribute group, which add up to the file
+    (header + groups + any bytes after the last vertex)."""
+    from .formats.inria_ply import read_inria_ply
+    from .formats.ply import read_ply_header
+
+    header = read_ply_header(path)
+    ply = read_inria_ply(path)  # validates the layout and the values
+    size = path.stat().st_size
+    N = int(header.count)
+    itemsize = {n: np.dtype(c).itemsize for n, c in header.properties}
+    by_group = {g: N * sum(itemsize[n] for n in header.names if any(
+        n == p or (p.endswith("_") and n.startswith(p)) for p in prefixes)) for g, prefixes in INRIA_GROUPS.items()}
+    body = N * sum(itemsize.values())
+    return {"file": str(path), "type": "inria-3dgs-ply", "gaussians": N, "sh_degree": ply.sh_degree,
+            "file_bytes": size, "header_bytes": header.header_size, "bytes_by_group": by_group,
+            "trailing_bytes": size - header.header_size - body, "bytes_per_gaussian": body / N if N else None,
+            "properties": len(header.names), "format": header.format}
 
 
 def _container_stats(path: Path) -> dict:
@@ -599,6 +638,9 @@ def _ply_stats(path: Path, scaffold_mlps: list[Path] | None = None, scaffold_mod
     M = int(header.count)
     groups = {"positions": ("x", "y", "z"), "offsets": ("f_offset_",), "features": ("f_anchor_feat_",),
               "scalings": ("scale_",), "unused": ("nx", "ny", "nz", "opacity", "rot_")}
+    known = {n for n in names if any(n == p or (p.endswith("_") and n.startswith(p)) for ps in groups.values()
+                                     for p in ps)}
+    groups["other"] = tuple(n for n in names if n not in known)
     itemsize = dict(zip(names, [np.dtype(header.dtype()[n]).itemsize for n in names]))
     by_group = {}
     for g, prefixes in groups.items():
@@ -607,7 +649,8 @@ def _ply_stats(path: Path, scaffold_mlps: list[Path] | None = None, scaffold_mod
     total = size + (wbytes or 0)
     out = {"file": str(path), "type": "ply", "anchors": M, "file_bytes": size, "weights_file": str(w),
            "weights_bytes": wbytes, "total_bytes": total, "bits_per_anchor": 8.0 * total / M if M else None,
-           "raw_bytes_by_group": by_group, "properties": len(names)}
+           "raw_bytes_by_group": by_group, "properties": len(names), "header_bytes": header.header_size,
+           "trailing_bytes": size - header.header_size - M * sum(itemsize.values())}
     if scaffold_mlps is not None:
         out["scaffold_gs"] = {"mode": scaffold_mode, "mlp_files": [p.name for p in scaffold_mlps]}
     return out

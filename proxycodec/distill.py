@@ -12,8 +12,9 @@ at random resolutions in [0.1, 1]. The anchor set never changes. Held-out views 
 
 from __future__ import annotations
 
+import math
 import time
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
@@ -143,11 +144,7 @@ def distill(source: SceneModel, config: FitConfig, *, views: TeacherViews | None
     """
     log = log or (lambda s: None)
     cfg = replace(config, proxies=True, stage2_start=0.0, update_until=0.0, checkpoint_every=0.0)
-    if lr_scale != 1.0:  # fine-tuning: every learning rate of the anchors and the decoder scaled, the predictor's not
-        scaled = {f.name: (tuple(v * lr_scale for v in lr) if isinstance(lr, tuple) else lr * lr_scale)
-                  for f in fields(cfg) if f.name.startswith("lr_") and f.name not in ("lr_predictor", "lr_warmup")
-                  for lr in (getattr(cfg, f.name),)}
-        cfg = replace(cfg, **scaled)
+    cfg = cfg.with_lr_scale(lr_scale)
     if start_proxies is not None:
         pc = start_proxies[0].config
         cfg = replace(cfg, predictor="residual", predictor_hidden=pc.hidden, predictor_blocks=pc.n_blocks,
@@ -181,9 +178,12 @@ def held_out_report(model: SceneModel, views: TeacherViews, resolutions=REPORT_R
             img = model.render(views.cameras[i], xi, backend=backend).image.clamp(0, 1).numpy()
             p.append(psnr(img, gt))
             s.append(ssim(img, gt))
-        rows.append({"xi": float(xi), "psnr": float(np.mean(p)), "ssim": _mean(s)})
+        m = float(np.mean(p))
+        rows.append({"xi": float(xi), "psnr": m if math.isfinite(m) else None, "ssim": _mean(s)})
+    # PSNR is undefined (infinite) where the images are identical (the teacher against itself at 100%): None there,
+    # and the mean is over the other resolutions
     return {"views": [int(i) for i in idx], "held_out": bool(views.test_indices), "per_resolution": rows,
-            "psnr": float(np.mean([r["psnr"] for r in rows])), "ssim": _mean([r["ssim"] for r in rows])}
+            "psnr": _mean([r["psnr"] for r in rows]), "ssim": _mean([r["ssim"] for r in rows])}
 
 
 def _mean(values) -> float | None:

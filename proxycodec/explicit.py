@@ -453,7 +453,16 @@ class _ExplicitInfo:
     """What ``evaluate`` asks of ``model.scene``: an explicit scene has Gaussians, no anchors."""
 
     num_gaussians: int
+    means: np.ndarray | None = None  # [N, 3]
     num_anchors: None = None
+
+    def bounds(self) -> np.ndarray:
+        """[2, 3] axis-aligned bounds of the Gaussians' centres, robust to floaters: their 1st and 99th
+        percentiles from 100 Gaussians on (zeros when there are none)."""
+        if self.means is None or len(self.means) == 0:
+            return np.zeros((2, 3))
+        m = self.means.astype(np.float64)
+        return np.percentile(m, [1, 99], axis=0) if len(m) >= 100 else np.stack([m.min(0), m.max(0)])
 
 
 @dataclass
@@ -479,7 +488,7 @@ class ExplicitModel:
 
     @property
     def scene(self) -> _ExplicitInfo:
-        return _ExplicitInfo(self.ply.n_gaussians)
+        return _ExplicitInfo(self.ply.n_gaussians, self.ply.means)
 
     def render(self, camera, xi: float = 1.0, *, backend: str = "auto") -> RenderResult:
         cam = camera.scaled(xi)
@@ -490,6 +499,14 @@ class ExplicitModel:
 
     @staticmethod
     def load(path: str | os.PathLike, background=(1.0, 1.0, 1.0)) -> ExplicitModel:
+        """The PLY at ``path``, with the views of a 3DGS ``cameras.json`` beside it (or two folders up, 3DGS's
+        output layout) when there is one, else an orbit around its Gaussians."""
+        from .camera import default_cameras
+        from .scaffold_gs import find_cameras_json, read_scaffold_cameras
+
         ply = read_inria_ply(path)
-        return ExplicitModel(ply, tuple(float(b) for b in background),
-                             {"kind": "inria-3dgs", "source": str(Path(path))})
+        cj = find_cameras_json(path)
+        model = ExplicitModel(ply, tuple(float(b) for b in background),
+                              {"kind": "inria-3dgs", "source": str(Path(path))})
+        model.cameras = read_scaffold_cameras(cj) if cj else default_cameras(None, model.scene.bounds())
+        return model

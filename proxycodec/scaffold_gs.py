@@ -33,7 +33,7 @@ from .camera import Camera
 from .errors import ProxycodecError
 from .formats.torchscript import ScriptObject, read_torch_checkpoint, read_torchscript
 
-__all__ = ["ScaffoldFiles", "is_scaffold_output", "find_scaffold_files", "load_scaffold_output",
+__all__ = ["find_cameras_json", "write_cameras_json", "ScaffoldFiles", "is_scaffold_output", "find_scaffold_files", "load_scaffold_output",
            "read_cfg_args", "read_scaffold_cameras", "SPLIT_FILES", "CHECKPOINT_FILE"]
 
 #: Mode "split": one TorchScript archive per network (Scaffold-GS's file names).
@@ -226,6 +226,35 @@ def read_scaffold_cameras(path: str | os.PathLike) -> list[Camera]:
         except ProxycodecError as e:
             raise ProxycodecError(f"view {i}: {e.reason}", path) from None
     return cams
+
+
+def find_cameras_json(ply_path: str | os.PathLike) -> Path | None:
+    """``cameras.json`` beside the PLY, or two folders up (3DGS's ``OUT/point_cloud/iteration_N/point_cloud.ply``
+    with ``OUT/cameras.json``)."""
+    p = Path(ply_path).resolve().parent
+    for folder in (p, p.parent.parent):
+        c = folder / "cameras.json"
+        if c.is_file():
+            return c
+    return None
+
+
+def write_cameras_json(path: str | os.PathLike, cameras: list[Camera]) -> None:
+    """3DGS's ``cameras.json`` (``utils/camera_utils.camera_to_JSON``): id, img_name, width, height, position (the
+    centre), rotation (camera-to-world), fy, fx. Written atomically."""
+    import json
+
+    from .fileio import atomic_write
+
+    rows = []
+    for i, c in enumerate(cameras):
+        rows.append({"id": i, "img_name": c.name or f"view_{i:03d}", "width": int(c.width), "height": int(c.height),
+                     "position": [float(x) for x in c.center],
+                     "rotation": [[float(x) for x in r] for r in np.asarray(c.rotation).T],
+                     "fy": float(c.fy), "fx": float(c.fx)})
+    with atomic_write(path, "w") as fh:
+        json.dump(rows, fh)
+
 
 
 # ---------------------------------------------------------------------------------------------- the networks

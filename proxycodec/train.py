@@ -198,6 +198,16 @@ class FitConfig:
                 kw[f.name] = tuple(v) if isinstance(v, list) else v
         return FitConfig(**kw)
 
+    def with_lr_scale(self, scale: float) -> FitConfig:
+        """Every learning rate of the anchors and the decoder times ``scale`` (not the predictor's): fine-tuning a
+        converged scene, where Adam's first steps move every parameter by about its learning rate."""
+        if scale == 1.0:
+            return self
+        scaled = {f.name: (tuple(v * scale for v in lr) if isinstance(lr, tuple) else lr * scale)
+                  for f in fields(self) if f.name.startswith("lr_") and f.name not in ("lr_predictor", "lr_warmup")
+                  for lr in (getattr(self, f.name),)}
+        return replace(self, **scaled)
+
     def decoder_config(self, center, radius: float) -> DecoderConfig:
         return DecoderConfig(feat_dim=self.feat_dim, n_offsets=self.n_offsets, embedding=self.embedding,
                              scene_center=tuple(float(c) for c in center), scene_radius=float(radius),
@@ -639,8 +649,11 @@ def save_fitted(result: FitResult, ply_path: str | os.PathLike) -> tuple[Path, P
 # ================================================================================================ the run
 def fit(data, out_ply: str | os.PathLike, config: FitConfig = FitConfig(), *, dataset_root: str = "",
         resume: bool = False, log: ProgressFn | None = None, keep_checkpoint: bool = False,
-        stop_after: int | None = None) -> FitResult:
+        stop_after: int | None = None, start: SceneModel | None = None) -> FitResult:
     """Train on ``data`` (a ``PosedImages``) and write ``out_ply`` (+ weights sidecar) atomically.
+
+    ``start``: the scene to start from (``Trainer``'s; ``convert`` starts from anchors made of a 3DGS PLY's
+    Gaussians) instead of anchors grown from the dataset's points.
 
     Checkpoints go to ``<out>.ckpt.pxc`` every ``config.checkpoint_every`` seconds and on interrupt/exception, and
     are removed after success unless ``keep_checkpoint``. ``resume`` continues from that checkpoint.
@@ -649,7 +662,7 @@ def fit(data, out_ply: str | os.PathLike, config: FitConfig = FitConfig(), *, da
     log = log or (lambda s: print(s, file=sys.stderr, flush=True))
     ckpt = checkpoint_path_for(out_ply)
     t_setup = time.perf_counter()
-    tr = Trainer(data, config, dataset_root, log)
+    tr = Trainer(data, config, dataset_root, log, start=start)
     if resume:
         if not ckpt.exists():
             raise ProxycodecError("no checkpoint to resume from", ckpt)

@@ -397,7 +397,7 @@ class TestScaffoldPly:
 
     def test_inria_file_is_not_a_scaffold_file(self, tmp_path):
         write_inria_ply(tmp_path / "g.ply", _random_gaussians(4, 3))
-        with _raises(tmp_path / "g.ply", "INRIA 3DGS PLY: use read_inria_ply"):
+        with _raises(tmp_path / "g.ply", "INRIA 3DGS PLY: `proxycodec render` and `eval` take it"):
             read_scaffold_ply(tmp_path / "g.ply")
 
     def test_truncated_scaffold_file(self, tmp_path):
@@ -520,7 +520,7 @@ class TestInriaPly:
         with _raises(tmp_path / "rest.ply", "8 f_rest_.*expected 0, 9, 24 or 45"):
             read_inria_ply(tmp_path / "rest.ply")
         write_scaffold_ply(tmp_path / "s.ply", _random_scaffold(2))
-        with _raises(tmp_path / "s.ply", "Scaffold-GS anchor PLY: use read_scaffold_ply"):
+        with _raises(tmp_path / "s.ply", "Scaffold-GS anchor PLY: `proxycodec encode`"):
             read_inria_ply(tmp_path / "s.ply")
         with _raises(tmp_path / "missing.ply", "file not found"):
             read_inria_ply(tmp_path / "missing.ply")

@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from PIL import Image
@@ -156,6 +157,7 @@ def make_seeds() -> dict[str, bytes]:
          **_colmap_bin_seeds(), **_colmap_txt_seeds(), "blender_json": _blender_seed(),
          "container": _container_seed(), **_torch_seeds()}
     s["container_header"] = s["container"]
+    s["inria_convert"] = s["inria_ply"]
     s["ply_header"] = s["ply_le"]
     return s
 
@@ -178,9 +180,26 @@ def _ascii_ply(p):
     return read_ply(p)
 
 
+def _inria_convert(p):
+    """What ``proxycodec convert`` builds from a PLY before training: Gaussians made safe, the voxel, the anchors and
+    their fitted start (a few regression steps). Anything non-finite in the result is a bug."""
+    from proxycodec.convert import ConvertConfig, anchors_from_gaussians, choose_voxel, fit_attributes, load_gaussians
+    from proxycodec.decoder import GaussianDecoder
+    from proxycodec.netconfig import DecoderConfig
+
+    g = load_gaussians(read_inria_ply(p))
+    choice = choose_voxel(g, 10, ConvertConfig(max_anchors=2000))
+    scene, targets = anchors_from_gaussians(g, choice.voxel, 10, 32)
+    scene = fit_attributes(scene, GaussianDecoder(DecoderConfig()), targets, g.degree, 1.0, 3)
+    for name in ("positions", "features", "offsets", "scalings"):
+        if not torch.isfinite(getattr(scene, name)).all():
+            raise AssertionError(f"non-finite {name} from a converted PLY")
+    return scene
+
+
 READERS: dict[str, Callable[[Path], object]] = {
     "ply_le": read_ply, "ply_be": read_ply, "ply_ascii": _ascii_ply, "ply_header": read_ply_header,
-    "scaffold_ply": read_scaffold_ply, "inria_ply": read_inria_ply,
+    "scaffold_ply": read_scaffold_ply, "inria_ply": read_inria_ply, "inria_convert": _inria_convert,
     "cameras_bin": colmap.read_cameras_bin, "images_bin": lambda p: colmap.read_images_bin(p, keypoints=True),
     "points3d_bin": colmap.read_points3d_bin,
     "cameras_txt": colmap.read_cameras_txt, "images_txt": lambda p: colmap.read_images_txt(p, keypoints=True),

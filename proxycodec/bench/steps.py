@@ -171,8 +171,44 @@ def _step_spz(a: dict) -> dict:
             "node_peak_rss_mb": _rss_mb(resource.RUSAGE_CHILDREN)}
 
 
+def _step_convert(a: dict) -> dict:
+    """``proxycodec encode SPLATS.ply --keep-anchor-scene``: convert an INRIA PLY, then encode its anchor scene."""
+    from ..convert import ConvertConfig, convert_and_encode
+    from ..train import FitConfig
+
+    c = dict(a["convert"])
+    fit = FitConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in c.pop("fit", {}).items()})
+    cfg = ConvertConfig(fit=fit, **{k: tuple(v) if isinstance(v, list) else v for k, v in c.items()})
+    log = lambda s: print(s, file=sys.stderr, flush=True)  # noqa: E731
+    t0 = time.perf_counter()
+    conv, rep = convert_and_encode(a["ply"], a["out"], cfg, keep=a.get("keep"), log=log)
+    return {"bytes": rep.file_bytes, "seconds": time.perf_counter() - t0, "convert": conv.to_json(),
+            "encode_seconds": rep.seconds["total"], "anchors": rep.anchors, "proxies": rep.proxies}
+
+
+def _step_vs_source(a: dict) -> dict:
+    """A scene (``model``: anything ``load_any`` opens) against the anti-aliased renders of the INRIA PLY ``source``
+    (its 100% render box-filtered to each resolution) on the held-out views of ``cameras`` (every 8th, as
+    ``convert`` holds them out), at 10%..100%."""
+    from ..distill import TeacherViews, held_out_report
+    from ..explicit import ExplicitModel
+    from ..scaffold_gs import read_scaffold_cameras
+    from ..scenes import load_any
+
+    bg = tuple(float(x) for x in a["background"])
+    teacher = ExplicitModel.load(a["source"], bg)
+    views = TeacherViews(teacher, read_scaffold_cameras(a["cameras"]))
+    model = load_any(a["model"])
+    if isinstance(model, ExplicitModel):
+        model.background = bg
+    rep = held_out_report(model, views, max_views=int(a["views"]))
+    return {"psnr_avg": rep["psnr"], "ssim_avg": rep["ssim"], "views": rep["views"],
+            "per_resolution": rep["per_resolution"]}
+
+
 STEPS: dict[str, Callable[[dict], dict]] = {"fit": _step_fit, "explicit": _step_explicit, "encode": _step_encode,
-                                             "eval": _step_eval, "spz": _step_spz}
+                                             "eval": _step_eval, "spz": _step_spz, "convert": _step_convert,
+                                             "vs_source": _step_vs_source}
 
 
 def run_worker(kind: str, args: dict) -> dict:

@@ -22,6 +22,56 @@ from conftest import forged_tensor_pickle, os_system_pickle, replace_zip_record
 from proxycodec.formats import container
 
 
+def _hostile_gaussians() -> dict[str, bytes]:
+    """Degenerate 3DGS PLYs (issue 16): no Gaussians, all in one point, NaN / Inf fields, scales of e^+-20, zero
+    quaternions, an SH degree the fields do not match."""
+    import tempfile
+
+    import numpy as np
+    from proxycodec.formats.inria_ply import GaussianPly, write_inria_ply
+
+    rng = np.random.default_rng(7)
+    n = 12
+
+    def ply(**kw) -> bytes:
+        a = dict(means=rng.normal(size=(n, 3)), sh=rng.normal(size=(n, 4, 3)), opacities=rng.normal(size=n),
+                 scales=rng.normal(size=(n, 3)) - 3, quats=rng.normal(size=(n, 4)))
+        a.update(kw)
+        k = len(a["means"])
+        g = GaussianPly(**{key: v[:k] for key, v in a.items()})
+        with tempfile.TemporaryDirectory() as d:
+            write_inria_ply(Path(d) / "g.ply", g)
+            return (Path(d) / "g.ply").read_bytes()
+
+    out = {
+        "ok_seed.ply": ply(),
+        "no_gaussians.ply": ply(means=np.zeros((0, 3))),
+        "one_point.ply": ply(means=np.ones((n, 3)) * 0.25),
+        "ok_scales_e+20.ply": ply(scales=np.full((n, 3), 20.0)),
+        "ok_scales_e-20.ply": ply(scales=np.full((n, 3), -20.0)),
+        "ok_zero_quaternions.ply": ply(quats=np.zeros((n, 4))),
+        "ok_opacity_inf.ply": None,
+        "nan_mean.ply": None,
+        "inf_sh.ply": None,
+        "sh_degree_mismatch.ply": None,
+    }
+    base = out["ok_seed.ply"]
+    h = base.index(b"end_header\n") + 11
+    row = (len(base) - h) // n
+
+    def poke(offset_in_row: int, value: float) -> bytes:
+        b = bytearray(base)
+        b[h + offset_in_row:h + offset_in_row + 4] = struct.pack("<f", value)
+        return bytes(b)
+
+    # row layout: x y z nx ny nz f_dc(3) f_rest(9) opacity scale(3) rot(4)
+    out["ok_opacity_inf.ply"] = poke(4 * 18, float("inf"))
+    out["nan_mean.ply"] = poke(0, float("nan"))
+    out["inf_sh.ply"] = poke(4 * 7, float("inf"))
+    out["sh_degree_mismatch.ply"] = base.replace(b"property float f_rest_8\n", b"")  # 8 f_rest, rows of 9
+    return out
+
+
 def main() -> None:
     S = F.make_seeds()
     files: dict[str, dict[str, bytes]] = {k: {} for k in F.READERS}
@@ -71,6 +121,10 @@ def main() -> None:
     add("inria_ply", "truncated.ply", gi[:-7])
     add("inria_ply", "wrong_rest_count.ply", gi.replace(b"property float f_rest_8\n", b""))
     add("inria_ply", "scaffold_file.ply", sc)
+
+    # ---- 3DGS PLYs that `proxycodec convert` must refuse with one line or turn into a finite anchor scene
+    for name, data in _hostile_gaussians().items():
+        add("inria_convert", name, data)
 
     # ---- COLMAP binary
     cb, ib, pb = S["cameras_bin"], S["images_bin"], S["points3d_bin"]

@@ -1,0 +1,437 @@
+"""Any 3DGS PLY in: plain Gaussians -> a resolution-aware anchor scene, without the training images.
+
+1. **Anchors from a voxel grid over the Gaussians** (``choose_voxel``): every Gaussian falls in the cell
+   ``round(mu / v)``; an anchor sits at each occupied cell's centre (Scaffold-GS's rule). The automatic ``v`` is the
+   largest voxel (on a 2^(1/8) grid) at which the K = 10 heaviest Gaussians of each cell (weight: opacity x the area
+   of the two largest axes) hold ``keep`` (90%) of all the weight, and the anchors stay under ``max_anchors``.
+2. **Each anchor starts from its cell's Gaussians** (``anchors_from_gaussians``): the K heaviest become its K
+   offsets (``(mu - anchor) / v``, ``scaling[0:3] = log v``), ``scaling[3:6]`` is log(2 x the largest axis among
+   them); free slots sit at the centre and start invisible. The features and the decoder's three MLPs are then
+   fitted by regression (``fit_attributes``, no rendering) so that the decoded Gaussians start near the source's:
+   opacity (tanh -> the source's sigmoid; free slots -> -0.5), log scale, rotation (1 - <q, q_src>^2) and colour
+   (the source's SH colour along random view directions).
+3. **Training against the PLY's own renders**: ``fit``'s trainer (growing and pruning, then stage 2: proxies and the
+   residual predictor) on ``distill.TeacherViews`` of the source rendered as plain 3DGS, at random resolutions in
+   [0.1, 1] with anti-aliased targets (the teacher's 100% render box-filtered down). Cameras: a ``cameras.json``
+   beside the PLY (or two folders up, 3DGS's output layout), else automatic views (``auto_views``).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import sys
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .camera import Camera
+from .errors import ProxycodecError
+from .loop import ProgressFn
+from .model import SceneModel
+from .scene import AnchorScene
+from .train import FitConfig
+
+__all__ = ["ConvertConfig", "ConvertResult", "VoxelChoice", "anchors_from_gaussians", "auto_views",
+           "choose_voxel", "convert", "fit_attributes", "initial_model", "load_gaussians"]
+
+
+@dataclass(frozen=True)
+class ConvertConfig:
+    """A conversion. ``fit``: the training run against the PLY's renders (its defaults below: 4000 iterations,
+    cameras.json's views downscaled to 800 px, every learning rate ramped up over the first 5% since the run starts
+    from a scene that already looks right; the anchor set grows and is pruned until stage 2 starts at half the
+    run)."""
+
+    fit: FitConfig = field(default_factory=lambda: FitConfig(iters=4000, max_width=800, lr_warmup=0.05))
+    voxel_size: float = 0.0  # <= 0: automatic (choose_voxel)
+    keep: float = 0.9  # automatic voxel: share of the Gaussians' weight the anchors' K slots must hold
+    # automatic voxel: at most this many anchors. [D] Bytes: a stored anchor costs ~45 B in the container; lego's
+    # 129k-Gaussian PLY at the 90% rule would start with 27k anchors (~1.2 MB), at this cap 10.9k, trained to 31.4 dB
+    # against its renders (SPEC.md section 11)
+    max_anchors: int = 12_000
+    init_iters: int = 400  # regression steps of fit_attributes
+    views: int = 64  # automatic teacher views when the PLY has no cameras.json
+    view_size: int = 400  # their width and height
+    background: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    lr_scale: float = 1.0  # fit's learning rates of the anchors and the decoder times this (FitConfig.with_lr_scale)
+
+    def __post_init__(self) -> None:
+        if not (0.0 < self.keep <= 1.0):
+            raise ProxycodecError(f"keep must be in (0, 1], got {self.keep}")
+        if not (math.isfinite(self.voxel_size) and self.voxel_size >= 0):
+            raise ProxycodecError(f"voxel size must be a finite number >= 0 (0: automatic), got {self.voxel_size}")
+        if self.max_anchors < 1 or self.init_iters < 0 or self.views < 2 or self.view_size < 8:
+            raise ProxycodecError("max_anchors >= 1, init_iters >= 0, views >= 2 and view_size >= 8 are required")
+        if len(self.background) != 3 or not all(0.0 <= b <= 1.0 for b in self.background):
+            raise ProxycodecError(f"background must be 3 numbers in [0, 1], got {self.background}")
+
+
+# ================================================================================================ the source
+@dataclass
+class Gaussians:
+    """A 3DGS PLY's Gaussians, activated and made safe to build from (float64 numpy)."""
+
+    means: np.ndarray  # [N, 3]
+    sh: np.ndarray  # [N, C, 3] float32 (as stored)
+    alpha: np.ndarray  # [N] sigmoid(opacity)
+    scales: np.ndarray  # [N, 3] exp(log scale), clamped to [1e-7, 1e3] x the scene's extent
+    quats: np.ndarray  # [N, 4] unit wxyz (zero quaternions -> identity)
+    degree: int
+    extent: float  # robust size of the scene (the 1..99% percentile box's largest side)
+
+
+def load_gaussians(ply) -> Gaussians:
+    """``formats.inria_ply.GaussianPly`` -> ``Gaussians``; a PLY with no Gaussians, or whose Gaussians all sit in one
+    point, is refused (there is nothing to place anchors on)."""
+    n = ply.n_gaussians
+    if n == 0:
+        raise ProxycodecError("the PLY holds no Gaussians; nothing to convert")
+    means = ply.means.astype(np.float64)
+    lo, hi = np.percentile(means, [1, 99], axis=0) if n >= 100 else (means.min(0), means.max(0))
+    extent = float((hi - lo).max())
+    if not extent > 0:
+        extent = float((means.max(0) - means.min(0)).max())
+    if not extent > 0:
+        raise ProxycodecError(f"all {n} Gaussians sit in one point; there is no scene to place anchors on")
+    q = ply.quats.astype(np.float64)
+    qn = np.linalg.norm(q, axis=1, keepdims=True)
+    q = np.where(qn > 1e-12, q / np.maximum(qn, 1e-300), np.array([1.0, 0.0, 0.0, 0.0]))
+    log_s = np.clip(ply.scales.astype(np.float64), math.log(1e-7 * extent), math.log(1e3 * extent))
+    alpha = 1.0 / (1.0 + np.exp(-ply.opacities.astype(np.float64)))
+    return Gaussians(means, ply.sh, alpha, np.exp(log_s), q, ply.sh_degree, extent)
+
+
+def _weights(g: Gaussians) -> np.ndarray:
+    """What a Gaussian weighs in a picture: opacity x the area of its two largest axes."""
+    s = np.sort(g.scales, axis=1)
+    return g.alpha * s[:, 1] * s[:, 2] + 1e-30
+
+
+# ================================================================================================ the voxel grid
+@dataclass(frozen=True)
+class VoxelChoice:
+    voxel: float
+    anchors: int
+    kept_gaussians: int  # Gaussians that become a slot (the K heaviest of each cell)
+    kept_weight: float  # their share of the weight
+    automatic: bool
+
+    def describe(self) -> str:
+        how = "automatic" if self.automatic else "given"
+        return (f"voxel {self.voxel:.5g} ({how}): {self.anchors:,} anchors; the K heaviest Gaussians of each cell "
+                f"keep {self.kept_gaussians:,} Gaussians, {100 * self.kept_weight:.1f}% of the weight")
+
+
+def _cells(means: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:
+    """-> (unique cells [M, 3] int64, cell index of each point [N])."""
+    cells = np.round(means / voxel).astype(np.int64)
+    uniq, inv = np.unique(cells, axis=0, return_inverse=True)
+    return uniq, inv.reshape(-1)
+
+
+def _slots(inv: np.ndarray, weight: np.ndarray, M: int, K: int) -> tuple[np.ndarray, np.ndarray]:
+    """-> (order: points grouped by cell, heaviest first; rank of each point of ``order`` within its cell)."""
+    order = np.lexsort((-weight, inv))
+    cell = inv[order]
+    starts = np.searchsorted(cell, np.arange(M))
+    rank = np.arange(len(order)) - starts[cell]
+    return order, rank
+
+
+def _kept(means, weight, voxel, K) -> tuple[int, int, float]:
+    uniq, inv = _cells(means, voxel)
+    order, rank = _slots(inv, weight, len(uniq), K)
+    keep = rank < K
+    return len(uniq), int(keep.sum()), float(weight[order][keep].sum() / weight.sum())
+
+
+def choose_voxel(g: Gaussians, K: int, cfg: ConvertConfig) -> VoxelChoice:
+    """The anchors' voxel: ``cfg.voxel_size``, or the largest on a 2^(1/8) grid between extent/4096 and extent/16
+    whose cells' K heaviest Gaussians keep ``cfg.keep`` of the weight with at most ``cfg.max_anchors`` anchors (the
+    smallest voxel within the anchor cap when no voxel keeps that much)."""
+    w = _weights(g)
+    if cfg.voxel_size > 0:
+        M, kept, share = _kept(g.means, w, cfg.voxel_size, K)
+        return VoxelChoice(cfg.voxel_size, M, kept, share, False)
+    best = None
+    v = g.extent / 16.0
+    while v >= g.extent / 4096.0:
+        M, kept, share = _kept(g.means, w, v, K)
+        if M > cfg.max_anchors:
+            break
+        best = VoxelChoice(v, M, kept, share, True)
+        if share >= cfg.keep:
+            return best
+        v /= 2.0 ** 0.125
+    if best is None:  # even the coarsest voxel makes too many anchors: the coarsest
+        v = g.extent / 16.0
+        M, kept, share = _kept(g.means, w, v, K)
+        best = VoxelChoice(v, M, kept, share, True)
+    return best
+
+
+# ================================================================================================ the initial anchors
+@dataclass
+class SlotTargets:
+    """What each anchor's K decoded Gaussians should start as (``fit_attributes``'s targets)."""
+
+    used: torch.Tensor  # [M, K] bool: slot holds a source Gaussian
+    alpha: torch.Tensor  # [M, K] opacity (0 where unused)
+    log_scale: torch.Tensor  # [M, K, 3]
+    quat: torch.Tensor  # [M, K, 4] unit
+    sh: torch.Tensor  # [M, K, C, 3]
+    means: torch.Tensor  # [M, K, 3] world (for the view directions)
+
+
+def anchors_from_gaussians(g: Gaussians, voxel: float, K: int, F: int) -> tuple[AnchorScene, SlotTargets]:
+    """Anchors at the occupied cells' centres; the K heaviest Gaussians of a cell as its offsets (free slots at the
+    centre); features zero (``fit_attributes`` sets them)."""
+    uniq, inv = _cells(g.means, voxel)
+    M = len(uniq)
+    order, rank = _slots(inv, _weights(g), M, K)
+    keep = rank < K
+    src, cell, slot = order[keep], inv[order][keep], rank[keep]
+    anchors = uniq.astype(np.float64) * voxel
+    used = np.zeros((M, K), bool)
+    used[cell, slot] = True
+    offsets = np.zeros((M, K, 3))
+    offsets[cell, slot] = (g.means[src] - anchors[cell]) / voxel
+    s = np.ones((M, K, 3)) * voxel
+    s[cell, slot] = g.scales[src]
+    q = np.tile(np.array([1.0, 0.0, 0.0, 0.0]), (M, K, 1))
+    q[cell, slot] = g.quats[src]
+    alpha = np.zeros((M, K))
+    alpha[cell, slot] = g.alpha[src]
+    sh = np.zeros((M, K) + g.sh.shape[1:], np.float32)
+    sh[cell, slot] = g.sh[src]
+    means = np.repeat(anchors[:, None, :], K, 1)
+    means[cell, slot] = g.means[src]
+    base = np.log(2.0 * np.where(used[..., None], s, 0.0).max(axis=(1, 2)).clip(min=1e-7 * g.extent))
+    scal = np.concatenate([np.full((M, 3), math.log(voxel)), np.repeat(base[:, None], 3, 1)], 1)
+    f32 = lambda a: torch.tensor(a, dtype=torch.float32)  # noqa: E731
+    scene = AnchorScene(f32(anchors), torch.zeros(M, F), f32(offsets), f32(scal), float(voxel),
+                        {"name": "converted"}).validate()
+    targets = SlotTargets(torch.from_numpy(used), f32(alpha), f32(np.log(s)), f32(q), torch.from_numpy(sh),
+                          f32(means))
+    return scene, targets
+
+
+def fit_attributes(scene: AnchorScene, decoder, targets: SlotTargets, degree: int, view_distance: float,
+                   iters: int, seed: int = 0, log: ProgressFn | None = None) -> AnchorScene:
+    """Fit the anchors' features and the decoder's opacity / covariance / colour MLPs so that each anchor's decoded
+    Gaussians start near its slots' targets (no rendering; the embedding is the identity at this point). Views:
+    random directions at ``view_distance``. Returns the scene with the fitted features; the decoder is changed in
+    place."""
+    from .explicit import eval_sh
+
+    log = log or (lambda s: None)
+    M, K = targets.used.shape
+    if iters == 0 or M == 0:
+        return scene
+    gen = torch.Generator().manual_seed(seed)
+    feats = (0.01 * torch.randn(scene.features.shape, generator=gen)).requires_grad_(True)
+    mlps = [decoder.mlp_opacity, decoder.mlp_cov, decoder.mlp_color]
+    params = [feats] + [p for m in mlps for p in m.parameters()]
+    opt = torch.optim.Adam([{"params": [feats], "lr": 0.02}, {"params": params[1:], "lr": 0.003}])
+    pos, base = scene.positions, scene.scalings[:, 3:]
+    used = targets.used
+    alpha_t = torch.where(used, targets.alpha, torch.full_like(targets.alpha, -0.5))
+    cfg = decoder.config
+    batch = min(M, 16384)
+    t0 = time.perf_counter()
+    for it in range(iters):
+        idx = torch.randint(0, M, (batch,), generator=gen) if batch < M else torch.arange(M)
+        d = torch.randn(len(idx), 3, generator=gen)
+        d = d / d.norm(dim=1, keepdim=True).clamp_min(1e-12)  # view direction: camera -> anchor
+        dist = torch.full((len(idx), 1), float(view_distance))
+        x = torch.cat([feats[idx], d, dist], -1)
+        op = torch.tanh(decoder.mlp_opacity(x if cfg.opacity_dist else x[:, :-1]))
+        cov = decoder.mlp_cov(x if cfg.cov_dist else x[:, :-1]).reshape(-1, K, 7)
+        col = torch.sigmoid(decoder.mlp_color(x if cfg.color_dist else x[:, :-1])).reshape(-1, K, 3)
+        u = used[idx].float()
+        n_used = u.sum().clamp_min(1.0)
+        loss_op = ((op - alpha_t[idx]) ** 2).mean()
+        log_s = base[idx][:, None, :] + torch.nn.functional.logsigmoid(cov[..., :3])
+        loss_s = (((log_s - targets.log_scale[idx]) ** 2).mean(-1) * u).sum() / n_used
+        qhat = cov[..., 3:] / cov[..., 3:].norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        loss_q = ((1.0 - (qhat * targets.quat[idx]).sum(-1) ** 2) * u).sum() / n_used
+        with torch.no_grad():  # the source's colour of each slot seen along this anchor's view direction
+            sh = targets.sh[idx].reshape(-1, *targets.sh.shape[2:])
+            dirs = d[:, None, :].expand(-1, K, 3).reshape(-1, 3)
+            rgb = (eval_sh(degree, sh, dirs) + 0.5).clamp(0.0, 1.0).reshape(-1, K, 3)
+        loss_c = (((col - rgb) ** 2).mean(-1) * u).sum() / n_used
+        loss = loss_op + 0.1 * loss_s + 0.1 * loss_q + loss_c
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        if it == 0 or it + 1 == iters or (it + 1) % 100 == 0:
+            log(f"  initial fit {it + 1:4d}/{iters}: opacity {loss_op.item():.4f}  log-scale {loss_s.item():.3f}  "
+                f"rotation {loss_q.item():.3f}  colour {loss_c.item():.4f}  ({time.perf_counter() - t0:.1f} s)")
+    return AnchorScene(scene.positions, feats.detach().clone(), scene.offsets, scene.scalings, scene.voxel_size,
+                       dict(scene.metadata)).validate()
+
+
+# ================================================================================================ the views
+def auto_views(g: Gaussians, n: int, size: int) -> tuple[list[Camera], str]:
+    """Views for a PLY without cameras, and which layout they follow.
+
+    Decided from how the Gaussians' weight spreads around their weighted centre: ``r50`` / ``r90``, the radii
+    holding half and 90% of it. An object (r90 < 3 r50: the weight sits in one blob) is seen **outside-in**: views on
+    a sphere (icosphere directions) at the distance where the 90% sphere fills a 50-degree field of view, looking at
+    the centre. A room or an unbounded capture (r90 >= 3 r50: a near part and far walls or background) is seen
+    **inside-out**: views at r50 / 2 from the centre looking outward, alternating with views at r50 looking in.
+    """
+    import trimesh
+
+    w = g.alpha + 1e-12
+    center = (g.means * w[:, None]).sum(0) / w.sum()
+    r = np.linalg.norm(g.means - center, axis=1)
+    o = np.argsort(r)
+    cw = np.cumsum(w[o]) / w.sum()
+    r50 = float(r[o][np.searchsorted(cw, 0.5)])
+    r90 = float(r[o][min(np.searchsorted(cw, 0.9), len(o) - 1)])
+    r50 = max(r50, 1e-6 * g.extent, 1e-9)
+    r90 = max(r90, r50)
+    dirs = np.asarray(trimesh.creation.icosphere(subdivisions=3).vertices, dtype=np.float64)  # 642 directions
+    pick = dirs[np.round(np.linspace(0, len(dirs) - 1, min(n, len(dirs)))).astype(int)]
+    fov = 50.0
+    up = np.array([0.0, 0.0, 1.0])
+    cams = []
+    if r90 < 3.0 * r50:
+        layout = "outside-in"
+        dist = r90 / math.sin(math.radians(fov) / 2)
+        for i, d in enumerate(pick):
+            cams.append(Camera.look_at(center + dist * d, center, up, fov_x_deg=fov, width=size, height=size,
+                                       name=f"auto_{i:03d}"))
+    else:
+        layout = "inside-out"
+        for i, d in enumerate(pick):
+            if i % 2 == 0:
+                eye, target = center + 0.5 * r50 * d, center + 2.0 * r50 * d
+            else:
+                eye, target = center + r50 * d, center
+            cams.append(Camera.look_at(eye, target, up, fov_x_deg=fov + 20.0, width=size, height=size,
+                                       name=f"auto_{i:03d}"))
+    return cams, layout
+
+
+# ================================================================================================ the run
+@dataclass
+class ConvertResult:
+    path: Path  # the anchor PLY written (weights sidecar beside it)
+    model: SceneModel
+    voxel: VoxelChoice
+    cameras: str  # where the teacher's views came from
+    layout: str | None  # automatic views: outside-in / inside-out
+    iterations: int
+    seconds: dict
+    report: dict  # held-out: the converted scene and the source PLY against the anti-aliased source renders
+    history: list = field(default_factory=list)
+
+    def to_json(self) -> dict:
+        return {"path": str(self.path), "voxel": self.voxel.__dict__, "cameras": self.cameras,
+                "layout": self.layout, "iterations": self.iterations, "seconds": self.seconds,
+                "report": self.report}
+
+
+def initial_model(g: Gaussians, cfg: ConvertConfig, cameras: list[Camera], log: ProgressFn) -> tuple[SceneModel,
+                                                                                                    VoxelChoice]:
+    """The anchor scene a conversion starts from: voxel, anchors, decoder and features fitted to the Gaussians."""
+    from .decoder import GaussianDecoder
+
+    fc = cfg.fit
+    choice = choose_voxel(g, fc.n_offsets, cfg)
+    log(choice.describe())
+    scene, targets = anchors_from_gaussians(g, choice.voxel, fc.n_offsets, fc.feat_dim)
+    b = scene.bounds()
+    center = 0.5 * (b[0] + b[1])
+    radius = max(0.5 * float(np.linalg.norm(b[1] - b[0])), 1e-6)
+    torch.manual_seed(fc.seed)
+    dec = GaussianDecoder(fc.decoder_config(center, radius))
+    cam_c = np.array([c.center for c in cameras])
+    dist = float(np.median(np.linalg.norm(cam_c - center, axis=1))) if len(cam_c) else radius
+    scene = fit_attributes(scene, dec, targets, g.degree, dist, cfg.init_iters, fc.seed, log)
+    return SceneModel(scene, dec.eval(), list(cameras), tuple(cfg.background)), choice
+
+
+def convert(ply_path: str | os.PathLike, out_ply: str | os.PathLike, config: ConvertConfig = ConvertConfig(), *,
+            resume: bool = False, log: ProgressFn | None = None, report_views: int = 8) -> ConvertResult:
+    """Convert the INRIA 3DGS PLY at ``ply_path`` into an anchor scene at ``out_ply`` (+ weights sidecar, written
+    atomically by ``fit``; resumable from its checkpoint)."""
+    from .distill import TeacherViews, held_out_report
+    from .explicit import ExplicitModel
+    from .formats.inria_ply import read_inria_ply
+    from .scaffold_gs import find_cameras_json, read_scaffold_cameras
+    from .train import fit
+
+    log = log or (lambda s: print(s, file=sys.stderr, flush=True))
+    t0 = time.perf_counter()
+    ply = read_inria_ply(ply_path)
+    g = load_gaussians(ply)
+    log(f"convert: {ply.n_gaussians:,} Gaussians, SH degree {ply.sh_degree}, extent {g.extent:.4g}")
+    teacher = ExplicitModel(ply, tuple(cfg_bg for cfg_bg in config.background),
+                            {"kind": "inria-3dgs", "source": str(Path(ply_path))})
+    cj = find_cameras_json(ply_path)
+    layout = None
+    if cj is not None:
+        cams = read_scaffold_cameras(cj)
+        if config.fit.max_width:
+            cams = [c.with_max_width(int(config.fit.max_width)) for c in cams]
+        where = f"{cj} ({len(cams)} views)"
+    else:
+        cams, layout = auto_views(g, config.views, config.view_size)
+        where = f"automatic, {layout} ({len(cams)} views of {config.view_size} px)"
+    log(f"teacher views: {where}")
+    views = TeacherViews(teacher, cams, backend=config.fit.backend)
+    start, choice = initial_model(g, config, cams, log)
+    t_init = time.perf_counter() - t0
+    res = fit(views, out_ply, config.fit.with_lr_scale(config.lr_scale), dataset_root=str(ply_path), resume=resume, log=log, start=start)
+    t_fit = time.perf_counter() - t0 - t_init
+    model = res.model
+    rep = held_out_report(model, views, max_views=report_views, backend=config.fit.backend)
+    src = held_out_report(teacher, views, max_views=report_views, backend=config.fit.backend)
+    for what, r in (("converted vs the source's anti-aliased renders (held out)", rep),
+                    ("the source PLY rendered directly, same reference     ", src)):
+        log(f"{what}: " + "  ".join(f"{x['xi']:.1f}: " + ("  ref" if x["psnr"] is None else f"{x['psnr']:.2f}")
+                                    for x in r["per_resolution"]) + f"  (mean {r['psnr']:.2f} dB)")
+    seconds = {"setup": t_init, "train": res.seconds, "fit_call": t_fit, "total": time.perf_counter() - t0}
+    return ConvertResult(Path(out_ply), model, choice, where, layout, res.iterations, seconds,
+                         {"converted": rep, "source_direct": src}, res.history)
+
+
+def replace_fit(config: ConvertConfig, **fit_fields) -> ConvertConfig:
+    """``config`` with fields of its ``FitConfig`` replaced."""
+    return replace(config, fit=replace(config.fit, **fit_fields))
+
+
+def convert_and_encode(ply_path: str | os.PathLike, out: str | os.PathLike, config: ConvertConfig = ConvertConfig(),
+                       *, keep: str | os.PathLike | None = None, log: ProgressFn | None = None, **encode_knobs):
+    """``convert`` then ``codec.encode`` of the anchor scene (its stage-2 predictor as fitted): -> (ConvertResult,
+    EncodeReport). ``keep``: where the intermediate anchor PLY (+ weights) goes; default a temporary folder that is
+    removed afterwards."""
+    import shutil
+    import tempfile
+
+    from .codec import encode
+
+    log = log or (lambda s: print(s, file=sys.stderr, flush=True))
+    tmp = None
+    if keep is None:
+        out_dir = Path(out).resolve().parent
+        out_dir.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{Path(out).name}.", suffix=".convert", dir=out_dir))
+        keep = tmp / "anchors.ply"
+    try:
+        conv = convert(ply_path, keep, config, log=log)
+        info = {**conv.to_json(), "source": {"name": Path(ply_path).name, "bytes": Path(ply_path).stat().st_size},
+                "kept": None if tmp is not None else str(keep)}
+        info.pop("path")
+        report = encode(keep, out, progress=log, extra_meta={"convert": info}, **encode_knobs)
+    finally:
+        if tmp is not None:
+            shutil.rmtree(tmp, ignore_errors=True)
+    return conv, report

@@ -1,0 +1,271 @@
+"""`proxycodec convert`: an INRIA 3DGS PLY -> an anchor scene without images (issue 16), and the commands that
+now take a 3DGS PLY (stats, render, encode)."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+from click.testing import CliRunner
+
+from proxycodec.camera import Camera
+from proxycodec.cli.main import cli
+from proxycodec.convert import (ConvertConfig, anchors_from_gaussians, auto_views, choose_voxel, convert,
+                                fit_attributes, initial_model, load_gaussians, replace_fit)
+from proxycodec.decoder import GaussianDecoder
+from proxycodec.errors import ProxycodecError
+from proxycodec.explicit import ExplicitModel, eval_sh
+from proxycodec.formats.inria_ply import GaussianPly, read_inria_ply, rgb_to_sh_dc, write_inria_ply
+from proxycodec.netconfig import DecoderConfig
+from proxycodec.scaffold_gs import find_cameras_json, read_scaffold_cameras, write_cameras_json
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+
+def _ball(n=400, seed=0, degree=1, radius=0.5) -> GaussianPly:
+    """Gaussians on a sphere, two colour bands, random rotations (SH ``degree``)."""
+    rng = np.random.default_rng(seed)
+    v = rng.normal(size=(n, 3))
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    col = np.where((v[:, 2] > 0)[:, None], [0.9, 0.2, 0.1], [0.1, 0.3, 0.9])
+    c = (degree + 1) ** 2
+    sh = np.zeros((n, c, 3))
+    sh[:, 0] = rgb_to_sh_dc(col)
+    sh[:, 1:] = 0.05 * rng.normal(size=(n, c - 1, 3))
+    return GaussianPly(radius * v, sh, np.full(n, 2.0), np.full((n, 3), math.log(0.06)), rng.normal(size=(n, 4)))
+
+
+def _tiny_config(**fit) -> ConvertConfig:
+    return replace_fit(ConvertConfig(init_iters=60, views=12, view_size=32),
+                       **{"iters": 24, "log_every": 1e9, "checkpoint_every": 0.0, "predictor_warmup": 10, **fit})
+
+
+# ---------------------------------------------------------------------------------------------- building blocks
+def test_every_kept_gaussian_is_an_offset_of_its_anchor_exactly_where_it_was():
+    g = load_gaussians(_ball())
+    choice = choose_voxel(g, 10, ConvertConfig(voxel_size=0.1))
+    scene, t = anchors_from_gaussians(g, choice.voxel, 10, 32)
+    world = scene.positions[:, None, :] + scene.offsets * torch.exp(scene.scalings[:, None, :3])
+    got = world[t.used].double().numpy()
+    # every used slot is one of the source's centres, and there are as many as the cells keep
+    d = np.linalg.norm(got[:, None, :] - g.means[None], axis=-1).min(1)
+    assert d.max() < 1e-6
+    assert t.used.sum().item() == choice.kept_gaussians
+    counts = np.unique(np.round(g.means / 0.1).astype(np.int64), axis=0, return_counts=True)[1]
+    assert choice.kept_gaussians == int(np.minimum(counts, 10).sum())
+    assert scene.num_anchors == len(counts) == choice.anchors
+    # the offsets' scale is the voxel; the base scale bounds every kept Gaussian (sigmoid < 1)
+    assert torch.allclose(torch.exp(scene.scalings[:, :3]), torch.full((scene.num_anchors, 3), 0.1))
+    assert (t.log_scale[t.used] < scene.scalings[:, None, 3:].expand_as(t.log_scale)[t.used]).all()
+
+
+def test_the_automatic_voxel_keeps_the_weight_it_promises_and_is_the_largest_that_does():
+    g = load_gaussians(_ball(20000))  # dense: the coarsest voxel (extent / 16) keeps too little
+    cfg = ConvertConfig(keep=0.9)
+    c = choose_voxel(g, 10, cfg)
+    assert c.automatic and c.kept_weight >= 0.9 and c.anchors <= cfg.max_anchors and c.voxel < g.extent / 16
+    coarser = choose_voxel(g, 10, ConvertConfig(voxel_size=c.voxel * 2 ** 0.125))
+    assert coarser.kept_weight < 0.9
+    capped = choose_voxel(g, 10, ConvertConfig(keep=1.0, max_anchors=2000))  # the cap binds first
+    assert capped.anchors <= 2000 and capped.kept_weight < 1.0
+    assert choose_voxel(g, 10, ConvertConfig(voxel_size=capped.voxel / 2 ** 0.125)).anchors > 2000
+
+
+def test_the_fitted_start_decodes_near_the_source_gaussians():
+    g = load_gaussians(_ball())
+    scene, t = anchors_from_gaussians(g, 0.1, 10, 32)
+    torch.manual_seed(0)
+    dec = GaussianDecoder(DecoderConfig(scene_center=(0, 0, 0), scene_radius=1.0))
+    fitted = fit_attributes(scene, dec, t, g.degree, 2.0, iters=300)
+    cam = torch.tensor([0.0, -2.0, 0.3])
+    with torch.no_grad():
+        out = dec(fitted.positions, fitted.features, fitted.offsets, fitted.scalings, cam, 1.0)
+    used = t.used[out.anchor_index, out.slot]
+    assert used.float().mean() > 0.98  # free slots stay invisible
+    a, s = out.anchor_index[used], out.slot[used]
+    assert (out.opacities[used] - t.alpha[a, s]).abs().mean() < 0.05
+    d = out.world_means()[used] - cam
+    rgb = (eval_sh(g.degree, t.sh[a, s], d / d.norm(dim=1, keepdim=True)) + 0.5).clamp(0, 1)
+    assert (out.colors[used] - rgb).abs().mean() < 0.05
+    assert (torch.log(out.scales[used]) - t.log_scale[a, s]).abs().mean() < 0.2
+    q = out.quats[used] / out.quats[used].norm(dim=1, keepdim=True)
+    assert ((q * t.quat[a, s]).sum(1).abs() > 0.95).float().mean() > 0.9
+
+
+def test_auto_views_look_at_an_object_from_outside_and_around_a_room_from_inside():
+    obj = load_gaussians(_ball(500))
+    cams, layout = auto_views(obj, 16, 32)
+    assert layout == "outside-in" and len(cams) == 16
+    for c in cams:
+        assert np.linalg.norm(c.center) > 0.5  # outside the ball, looking at it
+        assert (c.world_to_camera[:3, :3] @ -c.center)[2] > 0
+    rng = np.random.default_rng(1)
+    walls = rng.normal(size=(1500, 3))
+    walls = 10.0 * walls / np.linalg.norm(walls, axis=1, keepdims=True)  # a room's walls (or the background)
+    table = 0.3 * rng.normal(size=(3000, 3))  # what the capture looked at, in the middle
+    m = np.concatenate([walls, table])
+    room = load_gaussians(GaussianPly(m, np.zeros((len(m), 1, 3)), np.zeros(len(m)), np.full((len(m), 3), -3.0),
+                                      np.tile([1.0, 0, 0, 0], (len(m), 1))))
+    cams, layout = auto_views(room, 16, 32)
+    assert layout == "inside-out"
+    assert max(np.linalg.norm(c.center) for c in cams) < 10.0  # inside the walls
+
+
+def test_cameras_json_round_trips_and_is_found_where_3dgs_puts_it(tmp_path):
+    cams = [Camera.look_at((2.0, 0.5 * i, 1.0), (0, 0, 0), fov_x_deg=40 + i, width=64 + i, height=48, name=f"c{i}")
+            for i in range(3)]
+    out = tmp_path / "output"
+    (out / "point_cloud" / "iteration_7000").mkdir(parents=True)
+    write_cameras_json(out / "cameras.json", cams)
+    ply = out / "point_cloud" / "iteration_7000" / "point_cloud.ply"
+    write_inria_ply(ply, _ball(50))
+    assert find_cameras_json(ply) == out / "cameras.json"
+    back = read_scaffold_cameras(find_cameras_json(ply))
+    for a, b in zip(cams, back):
+        assert np.allclose(a.world_to_camera, b.world_to_camera, atol=1e-9)
+        assert (a.width, a.height, a.fx, a.fy, a.cx, a.cy, a.name) == (b.width, b.height, b.fx, b.fy, b.cx, b.cy,
+                                                                        b.name)
+    assert len(ExplicitModel.load(ply).cameras) == 3  # render / eval use them
+
+
+# ---------------------------------------------------------------------------------------------- the run
+def test_convert_writes_a_stage_2_anchor_scene_and_reports_on_held_out_views(tmp_path):
+    src = tmp_path / "splats.ply"
+    write_inria_ply(src, _ball(300))
+    log = []
+    r = convert(src, tmp_path / "scene.ply", _tiny_config(), log=log.append)
+    from proxycodec.model import SceneModel, weights_path_for
+    from proxycodec.proxy import load_fitted_predictor
+
+    m = SceneModel.load(tmp_path / "scene.ply")
+    pred, mask = load_fitted_predictor(weights_path_for(tmp_path / "scene.ply"))
+    assert pred is not None and mask.shape == (m.scene.num_anchors,) and 0 < mask.sum() < len(mask)
+    assert r.layout == "outside-in" and r.iterations == 24
+    rows = r.report["converted"]["per_resolution"]
+    assert [x["xi"] for x in rows] == [round(0.1 * k, 1) for k in range(1, 11)]
+    assert all(math.isfinite(x["psnr"]) for x in rows)
+    assert r.report["converted"]["held_out"] and r.report["converted"]["views"] == [0]  # every 8th of 12 views
+    assert r.report["source_direct"]["per_resolution"][-1]["psnr"] is None or \
+        r.report["source_direct"]["per_resolution"][-1]["psnr"] > 60  # the reference itself at 100%
+    assert any("initial fit" in s for s in log) and any(s.startswith("it ") for s in log)
+    json.dumps(r.to_json())  # JSON-able
+
+
+def test_convert_is_deterministic(tmp_path):
+    src = tmp_path / "splats.ply"
+    write_inria_ply(src, _ball(200))
+    cfg = _tiny_config(iters=8)
+    convert(src, tmp_path / "a.ply", cfg, log=lambda s: None)
+    convert(src, tmp_path / "b.ply", cfg, log=lambda s: None)
+    assert (tmp_path / "a.ply").read_bytes() == (tmp_path / "b.ply").read_bytes()
+
+
+@pytest.mark.parametrize("case, message", [
+    ("empty", "holds no Gaussians"),
+    ("one_point", "sit in one point"),
+])
+def test_plys_with_nothing_to_convert_are_refused(tmp_path, case, message):
+    g = _ball(30)
+    if case == "empty":
+        g = GaussianPly(np.zeros((0, 3)), np.zeros((0, 4, 3)), np.zeros(0), np.zeros((0, 3)), np.zeros((0, 4)))
+    else:
+        g = GaussianPly(np.ones((30, 3)), g.sh, g.opacities, g.scales, g.quats)
+    write_inria_ply(tmp_path / "g.ply", g)
+    with pytest.raises(ProxycodecError, match=message):
+        convert(tmp_path / "g.ply", tmp_path / "out.ply", _tiny_config())
+    assert not (tmp_path / "out.ply").exists()
+
+
+def test_extreme_scales_and_zero_quaternions_convert_to_a_finite_scene(tmp_path):
+    g = _ball(120)
+    sc = g.scales.copy()
+    sc[:40] = 20.0
+    sc[40:80] = -20.0
+    q = g.quats.copy()
+    q[::3] = 0.0
+    write_inria_ply(tmp_path / "g.ply", GaussianPly(g.means, g.sh, g.opacities, sc, q))
+    src = ExplicitModel.load(tmp_path / "g.ply")
+    img = src.render(src.cameras[0], 0.5).image
+    assert torch.isfinite(img).all()  # the source itself renders
+    start, _ = initial_model(load_gaussians(read_inria_ply(tmp_path / "g.ply")), _tiny_config(),
+                             src.cameras, lambda s: None)
+    for name in ("features", "offsets", "scalings"):
+        assert torch.isfinite(getattr(start.scene, name)).all()
+    assert torch.isfinite(start.render(src.cameras[0], 0.3).image).all()
+
+
+# ---------------------------------------------------------------------------------------------- the commands
+def test_stats_names_a_3dgs_ply_and_its_bytes_add_up(tmp_path):
+    src = tmp_path / "splats.ply"
+    write_inria_ply(src, _ball(100, degree=3))
+    res = CliRunner().invoke(cli, ["stats", str(src), "--json"])
+    assert res.exit_code == 0, res.output
+    s = json.loads(res.output)
+    assert s["type"] == "inria-3dgs-ply" and s["gaussians"] == 100 and s["sh_degree"] == 3
+    assert s["header_bytes"] + sum(s["bytes_by_group"].values()) + s["trailing_bytes"] == src.stat().st_size
+    assert s["bytes_by_group"]["sh_rest"] == 100 * 45 * 4 and s["trailing_bytes"] == 0
+    text = CliRunner().invoke(cli, ["stats", str(src)]).output
+    assert "INRIA 3DGS PLY, 100 Gaussians, SH degree 3" in text and "proxycodec convert" in text
+    assert "Scaffold-GS" not in text
+
+
+def test_render_takes_a_3dgs_ply(tmp_path):
+    src = tmp_path / "splats.ply"
+    write_inria_ply(src, _ball(100))
+    res = CliRunner().invoke(cli, ["--threads", "1", "render", str(src), "--res", "0.25", "--view", "1", "-o", str(tmp_path / "r")])
+    assert res.exit_code == 0, res.output
+    assert len(list((tmp_path / "r").glob("*.png"))) == 1
+
+
+def test_encode_converts_a_3dgs_ply_and_keeps_the_anchor_scene_when_asked(tmp_path):
+    src = tmp_path / "splats.ply"
+    write_inria_ply(src, _ball(200))
+    keep = tmp_path / "kept" / "anchors.ply"
+    res = CliRunner().invoke(cli, ["--threads", "1", "encode", str(src), "-o", str(tmp_path / "s.pxc"), "--distill-iters", "12",
+                                   "--views", "10", "--view-size", "32", "--keep-anchor-scene", str(keep)])
+    assert res.exit_code == 0, res.output
+    from proxycodec.model import weights_path_for
+
+    assert keep.exists() and weights_path_for(keep).exists()
+    s = json.loads(CliRunner().invoke(cli, ["stats", str(tmp_path / "s.pxc"), "--json"]).output)
+    conv = s["metadata"]["convert"]
+    assert conv["source"]["name"] == "splats.ply" and conv["iterations"] == 12
+    assert s["metadata"]["proxy"]["source"].startswith("fit")  # the conversion's stage-2 predictor, as fitted
+    res = CliRunner().invoke(cli, ["--threads", "1", "decode", str(tmp_path / "s.pxc"), "--res", "0.3", "--view", "0",
+                                   "-o", str(tmp_path / "d")])
+    assert res.exit_code == 0, res.output
+    # without --keep-anchor-scene nothing but the container is left behind
+    res = CliRunner().invoke(cli, ["--threads", "1", "encode", str(src), "-o", str(tmp_path / "t" / "t.pxc"), "--distill-iters", "6",
+                                   "--views", "10", "--view-size", "32"])
+    assert res.exit_code == 0, res.output
+    assert sorted(p.name for p in (tmp_path / "t").iterdir()) == ["t.pxc"]
+
+
+@pytest.mark.parametrize("args, message", [
+    (["encode", "{src}", "--images", "{tmp}"], "do not apply to a 3DGS PLY"),
+    (["convert", "{tmp}/missing.ply", "-o", "{tmp}/o.ply"], "missing.ply"),
+    (["convert", "{anchor}", "-o", "{tmp}/o.ply"], "`proxycodec encode`, `render` and `stats` take it"),
+])
+def test_command_line_errors_are_one_line_and_name_a_command(tmp_path, args, message):
+    src = tmp_path / "splats.ply"
+    write_inria_ply(src, _ball(50))
+    from proxycodec.sample import sample_model
+
+    anchor = tmp_path / "anchor.ply"
+    sample_model().save(anchor)
+    argv = [a.format(src=src, tmp=tmp_path, anchor=anchor) for a in args]
+    res = CliRunner().invoke(cli, argv)
+    assert res.exit_code == 2, res.output
+    lines = res.output.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: ") and message in lines[0], res.output
+
+
+def test_the_library_encode_points_a_3dgs_ply_to_the_conversion(tmp_path):
+    from proxycodec import codec
+
+    write_inria_ply(tmp_path / "g.ply", _ball(50))
+    with pytest.raises(ProxycodecError, match="`proxycodec encode` converts it first"):
+        codec.encode(tmp_path / "g.ply", tmp_path / "g.pxc")
