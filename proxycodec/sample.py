@@ -1,18 +1,31 @@
 """The built-in default scene: procedural, deterministic, a few thousand anchors, structure at several scales.
 
-A checkerboard floor with a fine line grid, a striped sphere, a box with nested squares on its faces and a ring of
-thin posts, z up, inside [-1.2, 1.2]^2 x [0, 0.9]. Surfaces are sampled densely, voxelised into anchors (Scaffold-GS's
-rule: unique rounded positions), and each anchor gets 10 offsets on its local surface patch.
+A tartan floor with a fine line grid, a banded sphere, a box with a diagonal lattice on its faces and a ring of
+thin striped posts, z up, inside [-1.2, 1.2]^2 x [0, 0.9]. Surfaces are sampled densely, voxelised into anchors
+(Scaffold-GS's rule: unique rounded positions), and each anchor gets 10 offsets on its local surface patch.
 
 No training is needed: the decoder's MLPs are set analytically so features mean something a person can check.
-Hidden units pass features through (ReLU(f + S) with a shift S that keeps them positive, undone by the output
-bias), so
-- color MLP: Gaussian k's color = sigmoid(base_rgb + lum_k), from features 0..2 (base) and 3..12 (lum);
-- covariance MLP: the quaternion turning z onto the surface normal from features 13..15 (n_x, n_y, 1 + n_z);
-  tangent scales sigmoid(0) = 0.5, normal scale sigmoid(-4), times the anchor base scale;
+Colour is a function of the anchor (its 10 Gaussians share it), built from features that a proxy predicts well:
+- features 0..2: the part's base colour (RGB logits; constant on a part);
+- features 3..18: per pattern a phase pair (sin, cos)(2 pi n / m), n = the anchor's integer grid coordinates
+  along the pattern's integer direction, m its period in voxels (on other parts (-2, 0), where the stripe is off).
+  A leaf's pair is its proxy's turned by an angle that depends only on the offset between them, which the
+  residual predictor learns (a stripe pattern stored as a colour would not be predictable across its edges);
+- features 19..21: the surface normal (n_x, n_y, 1 + n_z); feature 22: 1 on the posts (round Gaussians);
+- features 23..31: a smooth function of position (as trained features are: correlated with their neighbours),
+  which no MLP reads.
+Networks:
+- colour MLP: hidden units 0..2 pass the base logits through (ReLU(f + 4), undone by the output bias); per pattern
+  two units whose difference clamp(k (s - hi) + 1, 0, 1) is a step of the phase's sine s, its ramp in the middle of
+  the gap between two of the values s takes on the voxel grid (so a small error in a predicted phase moves no
+  colour), times the pattern's RGB logit increment;
+- covariance MLP: the quaternion turning z onto the normal (features 19..21 through ReLU(f + 20)); tangent scales
+  sigmoid(0) = 0.5, normal scale sigmoid(-4) (sigmoid(0) on the posts: thinner than a voxel, their normals are
+  noise), times the anchor base scale;
 - opacity MLP: a constant tanh(3) = 0.995.
-Features 16..31 carry a smooth function of position (as trained features do: correlated with their neighbours).
-FiLM starts (and stays) the identity; the coverage gate is on.
+Every weight matrix is on the grid of the container's int8 weights (per-row scale max / 127) and every bias is a
+float16, so the default weight quantisation stores the decoder exactly. FiLM starts (and stays) the identity; the
+coverage gate is on.
 """
 
 from __future__ import annotations
@@ -27,34 +40,48 @@ from .decoder import DecoderConfig, GaussianDecoder
 from .model import SceneModel
 from .scene import AnchorScene
 
-SHIFT = 20.0
 VOXEL = 0.04
 K = 10
+FLOOR, SPHERE, BOX, POSTS = range(4)
+#: Base colour of each part (RGB in 0..1).
+BASE = ((0.22, 0.25, 0.33), (0.95, 0.62, 0.12), (0.55, 0.13, 0.5), (0.1, 0.08, 0.08))
+SPHERE_C, SPHERE_R = (-0.35, 0.3, 0.42), 0.38
+BOX_C, BOX_H = (0.55, -0.45, 0.25), 0.25
+#: Stripe patterns: (part, integer direction, period in voxels, where the step sits (a value of the sine, moved to
+#: the middle of the gap that holds it), RGB logit increment where the stripe is on).
+PATTERNS = (
+    (FLOOR, (1, 0, 0), 16, 0.2, (2.4, 1.9, 0.9)),  # tartan, 0.64 wide
+    (FLOOR, (0, 1, 0), 16, 0.2, (0.7, 1.6, 2.0)),
+    (FLOOR, (1, 0, 0), 4, 0.5, (-1.6, -1.6, -1.2)),  # line grid every 4 voxels, one voxel wide
+    (FLOOR, (0, 1, 0), 4, 0.5, (-1.6, -1.6, -1.2)),
+    (SPHERE, (0, 0, 1), 5, 0.3, (-4.5, -0.8, 3.2)),  # bands
+    (BOX, (1, 1, 1), 8, 0.4, (2.2, 3.4, 2.0)),  # a diagonal lattice
+    (BOX, (1, -1, 1), 8, 0.4, (2.2, 3.4, 2.0)),
+    (POSTS, (0, 0, 1), 5, 0.3, (4.6, 4.7, 4.7)),  # stripes
+)
+OFF = -2.0  # a pattern's sine on the other parts: below every step
+N_FEAT = 32
+NORMAL = 3 + 2 * len(PATTERNS)  # 19..21
+ROUND = NORMAL + 3  # 22: 1 on the posts
+SMOOTH = ROUND + 1  # 23..31
+BASE_SHIFT = 4.0  # colour pass-through: ReLU(f + 4) for base logits in [-3.9, 3.9]
+SHIFT = 20.0  # normal pass-through
 
 
 def _floor(rng, n):
     p = np.c_[rng.uniform(-1.2, 1.2, (n, 2)), np.zeros(n)]
-    nrm = np.tile([0.0, 0.0, 1.0], (n, 1))
-    check = (np.floor(p[:, 0] / 0.3) + np.floor(p[:, 1] / 0.3)) % 2
-    col = np.where(check[:, None] > 0, [0.85, 0.82, 0.75], [0.25, 0.3, 0.4])
-    fine = (np.abs((p[:, :2] / 0.075) - np.round(p[:, :2] / 0.075)) < 0.12).any(1)  # thin grid lines
-    col = np.where(fine[:, None], [0.55, 0.1, 0.1], col)
-    return p, nrm, col
+    p = p[~(np.abs(p[:, :2] - np.asarray(BOX_C[:2])) < BOX_H - VOXEL).all(1)]  # none under the box
+    return p, np.tile([0.0, 0.0, 1.0], (len(p), 1))
 
 
-def _sphere(rng, n, c=(-0.35, 0.3, 0.42), r=0.38):
+def _sphere(rng, n, c=SPHERE_C, r=SPHERE_R):
     v = rng.normal(size=(n, 3))
     v /= np.linalg.norm(v, axis=1, keepdims=True)
     v = v[v[:, 2] > -0.95]
-    lat = np.arcsin(v[:, 2])
-    stripes = (np.floor(lat / (math.pi / 12)) % 2)[:, None]
-    lon = np.arctan2(v[:, 1], v[:, 0])
-    col = np.where(stripes > 0, [0.95, 0.7, 0.1], [0.1, 0.45, 0.85])
-    col = col * (0.75 + 0.25 * np.cos(6 * lon))[:, None]
-    return np.asarray(c) + r * v, v, col
+    return np.asarray(c) + r * v, v
 
 
-def _box(rng, n, c=(0.55, -0.45, 0.25), h=0.25):
+def _box(rng, n, c=BOX_C, h=BOX_H):
     face = rng.integers(0, 6, n)
     uv = rng.uniform(-h, h, (n, 2))
     axis, sign = face // 2, np.where(face % 2 == 0, 1.0, -1.0)
@@ -68,10 +95,7 @@ def _box(rng, n, c=(0.55, -0.45, 0.25), h=0.25):
         p[m, others[1]] = uv[m, 1]
         nrm[m, a] = sign[m]
     keep = ~((axis == 2) & (sign < 0))  # no bottom face (it sits on the floor)
-    ring = np.maximum(np.abs(uv[:, 0]), np.abs(uv[:, 1]))
-    nested = (np.floor(ring / 0.04) % 2)[:, None]
-    col = np.where(nested > 0, [0.9, 0.9, 0.92], [0.6, 0.15, 0.55])
-    return (np.asarray(c) + p)[keep], nrm[keep], col[keep]
+    return (np.asarray(c) + p)[keep], nrm[keep]
 
 
 def _posts(rng, n, count=8, radius=0.02, height=0.8, ring=0.95):
@@ -82,21 +106,29 @@ def _posts(rng, n, count=8, radius=0.02, height=0.8, ring=0.95):
     nrm = np.c_[np.cos(t), np.sin(t), np.zeros(n)]
     p = base + radius * nrm
     p[:, 2] = rng.uniform(0, height, n)
-    col = np.where(((p[:, 2] / 0.1).astype(int) % 2)[:, None] > 0, [0.95, 0.95, 0.95], [0.05, 0.05, 0.05])
-    return p, nrm, col
+    return p, nrm
 
 
 def _logit(x):
-    x = np.clip(x, 0.02, 0.98)
+    x = np.clip(np.asarray(x, dtype=np.float64), 0.02, 0.98)
     return np.log(x / (1 - x))
+
+
+def _ramp(period: int, target: float) -> tuple[float, float]:
+    """(lo, hi): the middle 60% of the gap between the values of sin(2 pi n / period) (n integer) holding
+    ``target``: where a pattern's step rises from off to on."""
+    v = np.unique(np.round(np.sin(2 * np.pi * np.arange(period) / period), 12))
+    i = int(np.searchsorted(v, target))
+    lo, hi = v[i - 1], v[i]
+    return float(lo + 0.2 * (hi - lo)), float(hi - 0.2 * (hi - lo))
 
 
 def sample_scene(seed: int = 0, voxel: float = VOXEL) -> AnchorScene:
     rng = np.random.default_rng(seed)
     parts = [_floor(rng, 400_000), _sphere(rng, 90_000), _box(rng, 60_000), _posts(rng, 20_000)]
-    pts = np.concatenate([p for p, _, _ in parts])
-    nrm = np.concatenate([n for _, n, _ in parts])
-    col = np.concatenate([c for _, _, c in parts])
+    pts = np.concatenate([p for p, _ in parts])
+    nrm = np.concatenate([n for _, n in parts])
+    part = np.concatenate([np.full(len(p), i) for i, (p, _) in enumerate(parts)])
     cells = np.round(pts / voxel).astype(np.int64)
     uniq, inv = np.unique(cells, axis=0, return_inverse=True)
     inv = inv.reshape(-1)
@@ -108,21 +140,26 @@ def sample_scene(seed: int = 0, voxel: float = VOXEL) -> AnchorScene:
     sel = order[take]  # [M, K]
     anchors = uniq * voxel
     offsets = (pts[sel] - anchors[:, None, :]) / voxel
-    g_col = col[sel]  # [M, K, 3]
     g_nrm = nrm[sel].mean(1)
     g_nrm /= np.maximum(np.linalg.norm(g_nrm, axis=1, keepdims=True), 1e-9)
+    votes = np.zeros((M, len(parts)))
+    np.add.at(votes, (inv, part), 1)
+    apart = votes.argmax(1)  # each anchor's part: the one most of its points lie on (ties to the first)
 
-    logits = _logit(g_col)  # [M, K, 3]
-    base = logits.mean(1)  # [M, 3]
-    lum = (logits - base[:, None, :]).mean(2)  # [M, K]
-    feats = np.zeros((M, 32))
-    feats[:, 0:3] = base
-    feats[:, 3:13] = lum
-    feats[:, 13] = g_nrm[:, 0]
-    feats[:, 14] = g_nrm[:, 1]
-    feats[:, 15] = 1.0 + g_nrm[:, 2]
-    freq = rng.normal(size=(16, 3)) * 3.0
-    feats[:, 16:32] = 0.5 * np.sin(anchors @ freq.T + rng.uniform(0, 2 * math.pi, 16))
+    feats = np.zeros((M, N_FEAT))
+    feats[:, 0:3] = _logit(BASE)[apart]
+    for j, (on_part, direction, period, _, _) in enumerate(PATTERNS):
+        th = 2 * math.pi * (uniq @ np.asarray(direction)) / period  # exact: integer grid coordinates
+        on = apart == on_part
+        feats[:, 3 + 2 * j] = np.where(on, np.sin(th), OFF)
+        feats[:, 4 + 2 * j] = np.where(on, np.cos(th), 0.0)
+    feats[:, NORMAL] = g_nrm[:, 0]
+    feats[:, NORMAL + 1] = g_nrm[:, 1]
+    feats[:, NORMAL + 2] = 1.0 + g_nrm[:, 2]
+    feats[:, ROUND] = apart == POSTS
+    n_smooth = N_FEAT - SMOOTH
+    freq = rng.normal(size=(n_smooth, 3)) * 3.0
+    feats[:, SMOOTH:] = 0.5 * np.sin(anchors @ freq.T + rng.uniform(0, 2 * math.pi, n_smooth))
     scal = np.zeros((M, 6))
     scal[:, 0:3] = math.log(voxel)
     scal[:, 3:6] = math.log(voxel * 0.7)
@@ -138,6 +175,19 @@ def sample_scene(seed: int = 0, voxel: float = VOXEL) -> AnchorScene:
     ).validate()
 
 
+def _on_storage_grid(decoder: GaussianDecoder) -> None:
+    """Round every weight matrix to the container's int8 grid (per-row scale max / 127, ``sections``' q8) and every
+    vector to float16, so that storing the decoder with the default weight quantisation changes nothing."""
+    with torch.no_grad():
+        for p in decoder.parameters():
+            if p.ndim == 2:
+                scale = (p.abs().amax(1) / 127.0).float()
+                scale = torch.where(scale > 0, scale, torch.ones_like(scale))
+                p.copy_(torch.round(p / scale[:, None]) * scale[:, None])
+            else:
+                p.copy_(p.half().float())
+
+
 def sample_decoder(scene: AnchorScene) -> GaussianDecoder:
     meta = scene.metadata
     cfg = DecoderConfig(scene_center=tuple(meta.get("center", (0, 0, 0))), scene_radius=float(meta.get("radius", 1.0)))
@@ -146,31 +196,48 @@ def sample_decoder(scene: AnchorScene) -> GaussianDecoder:
     with torch.random.fork_rng():
         torch.manual_seed(int(meta.get("seed", 0)))
         dec = GaussianDecoder(cfg)
-    F = cfg.feat_dim
     with torch.no_grad():
         for mlp in (dec.mlp_opacity, dec.mlp_cov, dec.mlp_color):
             for p in mlp.parameters():
                 p.zero_()
-            mlp[0].weight[:, :F] = torch.eye(32, F)  # hidden j = ReLU(f_j + S)
-            mlp[0].bias[:] = SHIFT
         dec.mlp_opacity[2].bias[:] = 3.0
-        w, b = dec.mlp_color[2].weight, dec.mlp_color[2].bias
+        # colour: hidden 0..2 = ReLU(base + BASE_SHIFT); per pattern j, hidden 3 + 2j, 4 + 2j make its step
+        w1, b1 = dec.mlp_color[0].weight, dec.mlp_color[0].bias
+        w2, b2 = dec.mlp_color[2].weight, dec.mlp_color[2].bias
+        inc = np.zeros((3 + 2 * len(PATTERNS), 3))
+        for ch in range(3):
+            w1[ch, ch] = 1.0
+            b1[ch] = BASE_SHIFT
+            inc[ch, ch] = 1.0
+        for j, (_, _, period, target, rgb) in enumerate(PATTERNS):
+            lo, hi = _ramp(period, target)
+            h, slope = 3 + 2 * j, 1.0 / (hi - lo)
+            w1[h, 3 + 2 * j] = w1[h + 1, 3 + 2 * j] = slope
+            b1[h] = 1.0 - slope * hi  # ReLU(slope (s - hi) + 1) - ReLU(slope (s - hi)) = clamp(., 0, 1)
+            b1[h + 1] = -slope * hi
+            inc[h], inc[h + 1] = rgb, -np.asarray(rgb)
         for k in range(K):
-            for ch in range(3):
-                w[3 * k + ch, ch] = 1.0
-                w[3 * k + ch, 3 + k] = 1.0
-                b[3 * k + ch] = -2 * SHIFT
+            w2[3 * k:3 * k + 3, :len(inc)] = torch.tensor(inc.T, dtype=torch.float32)
+            b2[3 * k:3 * k + 3] = -BASE_SHIFT
+        # covariance: hidden 0..2 = ReLU(normal + SHIFT), hidden 3 = ReLU(round + SHIFT)
+        w, b = dec.mlp_cov[0].weight, dec.mlp_cov[0].bias
+        for i in range(3):
+            w[i, NORMAL + i] = 1.0
+        w[3, ROUND] = 1.0
+        b[:4] = SHIFT
         w, b = dec.mlp_cov[2].weight, dec.mlp_cov[2].bias
         for k in range(K):
             o = 7 * k
             b[o:o + 2] = 0.0  # tangent scale logits
-            b[o + 2] = -4.0  # normal scale logit
-            w[o + 3, 15] = 1.0  # w = 1 + n_z
-            w[o + 4, 14] = -1.0  # x = -n_y
-            w[o + 5, 13] = 1.0  # y = n_x
+            w[o + 2, 3] = 4.0  # normal scale logit: -4, or 0 on the posts
+            b[o + 2] = -4.0 - 4.0 * SHIFT
+            w[o + 3, 2] = 1.0  # w = 1 + n_z
+            w[o + 4, 1] = -1.0  # x = -n_y
+            w[o + 5, 0] = 1.0  # y = n_x
             b[o + 3] = -SHIFT
             b[o + 4] = SHIFT
             b[o + 5] = -SHIFT
+    _on_storage_grid(dec)
     return dec.eval()
 
 

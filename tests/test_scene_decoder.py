@@ -192,3 +192,27 @@ def test_the_sample_scene_is_the_same_bytes_for_a_seed_whatever_torch_drew_befor
     assert torch.equal(after, torch.rand(1)), "sampling must not consume the caller's torch random stream"
     pa, pb = a.save(tmp_path / "a.ply"), b.save(tmp_path / "b.ply")
     assert [p.read_bytes() for p in pa] == [p.read_bytes() for p in pb]
+
+
+def test_the_sample_decoder_survives_the_container_and_its_stripes_are_steps_off_the_grid_values(tmp_path):
+    """The built-in scene's decoder is on the storage grid (int8 rows, float16 vectors): the default weight
+    quantisation stores it unchanged. Its stripes are steps of a phase's sine whose ramps lie between the values the
+    sine takes on the voxel grid, far enough from them that a predicted phase a little off changes no colour."""
+    from proxycodec import codec
+    from proxycodec.sample import PATTERNS, _ramp, sample_model
+
+    m = sample_model(0)
+    rep = codec.encode(m, tmp_path / "s.pxc", distill=False, predictor_iters=1, zstd_level=3)
+    wa, wb = m.decoder.state_arrays(), rep.model.decoder.state_arrays()
+    for k in wa:
+        np.testing.assert_allclose(wb[k], wa[k], rtol=1e-6, atol=1e-7, err_msg=k)
+    f = m.scene.features.numpy()
+    for j, (_, _, period, target, _) in enumerate(PATTERNS):
+        assert 0 < period and -1 < target < 1
+        lo, hi = _ramp(period, target)
+        s = f[:, 3 + 2 * j]
+        on = s[s > -1.5]  # the pattern's part
+        assert len(on) > 50
+        assert np.minimum(np.abs(on - lo), np.abs(on - hi)).min() > 0.05, j
+        assert not ((on > lo) & (on < hi)).any(), j
+        assert (on >= hi).any() and (on <= lo).any(), j  # stripes on and off
