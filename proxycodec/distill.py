@@ -113,7 +113,9 @@ class TeacherViews:
 
         full = self._full.get(i)
         if full is None:
-            full = self.teacher.render(self.cameras[i], 1.0, backend=self.backend).image.numpy().astype(np.float32)
+            # clamped to [0, 1] as a photo (and every render we report) is: a 3DGS teacher's SH colours can exceed 1
+            full = self.teacher.render(self.cameras[i], 1.0, backend=self.backend).image.clamp(0.0, 1.0).numpy()
+            full = full.astype(np.float32)
             if i in self.test_indices:  # the report reads them at every resolution; training views are cached by
                 self._full[i] = full     # the trainer's targets (loop.TargetImages), not twice
 
