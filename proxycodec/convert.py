@@ -359,9 +359,11 @@ def initial_model(g: Gaussians, cfg: ConvertConfig, cameras: list[Camera], log: 
 
 
 def convert(ply_path: str | os.PathLike, out_ply: str | os.PathLike, config: ConvertConfig = ConvertConfig(), *,
-            resume: bool = False, log: ProgressFn | None = None, report_views: int = 8) -> ConvertResult:
+            resume: bool = False, log: ProgressFn | None = None, report_views: int = 8,
+            stop_after: int | None = None) -> ConvertResult:
     """Convert the INRIA 3DGS PLY at ``ply_path`` into an anchor scene at ``out_ply`` (+ weights sidecar, written
-    atomically by ``fit``; resumable from its checkpoint)."""
+    atomically by ``fit``; resumable from its checkpoint, ``<out>.ckpt.pxc``, saved on interrupt as ``fit`` saves
+    it). ``stop_after`` (tests): interrupt after that many training iterations."""
     from .distill import TeacherViews, held_out_report
     from .explicit import ExplicitModel
     from .formats.inria_ply import read_inria_ply
@@ -389,7 +391,8 @@ def convert(ply_path: str | os.PathLike, out_ply: str | os.PathLike, config: Con
     views = TeacherViews(teacher, cams, backend=config.fit.backend)
     start, choice = initial_model(g, config, cams, log)
     t_init = time.perf_counter() - t0
-    res = fit(views, out_ply, config.fit.with_lr_scale(config.lr_scale), dataset_root=str(ply_path), resume=resume, log=log, start=start)
+    res = fit(views, out_ply, config.fit.with_lr_scale(config.lr_scale), dataset_root=str(ply_path), resume=resume, log=log, start=start,
+              stop_after=stop_after)
     t_fit = time.perf_counter() - t0 - t_init
     model = res.model
     rep = held_out_report(model, views, max_views=report_views, backend=config.fit.backend)

@@ -163,6 +163,25 @@ def test_convert_is_deterministic(tmp_path):
     assert (tmp_path / "a.ply").read_bytes() == (tmp_path / "b.ply").read_bytes()
 
 
+def test_an_interrupted_conversion_resumes_to_the_same_scene(tmp_path):
+    from proxycodec.model import SceneModel
+
+    src = tmp_path / "splats.ply"
+    write_inria_ply(src, _ball(200))
+    cfg = _tiny_config(iters=16, predictor_warmup=5)
+    convert(src, tmp_path / "a.ply", cfg, log=lambda s: None)
+    with pytest.raises(KeyboardInterrupt):
+        convert(src, tmp_path / "b.ply", cfg, log=lambda s: None, stop_after=11)  # in stage 2
+    assert not (tmp_path / "b.ply").exists() and (tmp_path / "b.ckpt.pxc").exists()
+    log = []
+    convert(src, tmp_path / "b.ply", cfg, resume=True, log=log.append)
+    assert any("resumed" in s and "iteration 11" in s for s in log)
+    a, b = SceneModel.load(tmp_path / "a.ply").scene, SceneModel.load(tmp_path / "b.ply").scene
+    assert a.num_anchors == b.num_anchors
+    for name in ("features", "offsets", "scalings"):
+        assert torch.allclose(getattr(a, name), getattr(b, name), atol=1e-4), name
+
+
 @pytest.mark.parametrize("case, message", [
     ("empty", "holds no Gaussians"),
     ("one_point", "sit in one point"),
