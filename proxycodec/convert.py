@@ -375,7 +375,7 @@ def convert(ply_path: str | os.PathLike, out_ply: str | os.PathLike, config: Con
     ply = read_inria_ply(ply_path)
     g = load_gaussians(ply)
     log(f"convert: {ply.n_gaussians:,} Gaussians, SH degree {ply.sh_degree}, extent {g.extent:.4g}")
-    teacher = ExplicitModel(ply, tuple(cfg_bg for cfg_bg in config.background),
+    teacher = ExplicitModel(ply, tuple(config.background),
                             {"kind": "inria-3dgs", "source": str(Path(ply_path))})
     cj = find_cameras_json(ply_path)
     layout = None
