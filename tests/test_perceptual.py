@@ -402,3 +402,10 @@ def test_eval_reports_lpips_when_installed_and_says_when_not(tmp_path, monkeypat
     assert all(d["lpips"] is None for d in rep["per_resolution"]) and rep["summary"]["lpips_avg"] is None
     assert "| LPIPS |" not in r.output
     assert sum(line.startswith("LPIPS not computed") for line in r.output.splitlines()) == 1
+    # weights that are there but broken: a one-line error naming the file, not a silent skip
+    bad = tmp_path / "broken.ckpt"
+    bad.write_bytes(fake_ckpt.read_bytes()[:1000])
+    monkeypatch.setenv(WEIGHTS_ENV, str(bad))
+    r = CliRunner().invoke(cli, args + ["-o", str(tmp_path / "bad")])
+    assert r.exit_code == 2 and "broken.ckpt: malformed pickle" in r.output and "Traceback" not in r.output
+    assert len(r.output.strip().splitlines()) == 1
