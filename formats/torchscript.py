@@ -26,7 +26,6 @@ import io
 import math
 import os
 import pickle
-import pickletools
 import re
 import zipfile
 import zlib
@@ -37,6 +36,8 @@ from typing import Any
 import numpy as np
 
 from ..errors import ProxycodecError
+from .safe_pickle import MAX_NDIM, ArrayHolder, Holder, Malformed, Part, convert, int_tuple, restricted_load, \
+    short_error
 
 __all__ = ["ScriptObject", "read_torchscript", "read_torch_checkpoint", "MAX_ARCHIVE_BYTES"]
 
@@ -44,7 +45,6 @@ __all__ = ["ScriptObject", "read_torchscript", "read_torch_checkpoint", "MAX_ARC
 MAX_ARCHIVE_BYTES = 256 << 20
 MAX_PICKLE_BYTES = 16 << 20
 MAX_RECORDS = 65536
-MAX_NDIM = 16
 #: Tensors rebuilt from one file may hold at most this many bytes per byte of file (views of one storage repeat it).
 TENSOR_BUDGET_RATIO = 2
 TENSOR_BUDGET_MIN = 1 << 16
@@ -73,11 +73,7 @@ class ScriptObject:
         return ".".join(parts)
 
 
-class _Malformed(Exception):
-    """Raised inside the unpickler; turned into a ``ProxycodecError`` naming the file."""
-
-
-class _StorageType:
+class _StorageType(Part):
     """What ``torch.FloatStorage`` & co. unpickle to: a tag naming the storage's dtype (not callable)."""
 
     __slots__ = ("name", "dtype")
@@ -86,8 +82,9 @@ class _StorageType:
         self.name, self.dtype = name, dtype
 
 
-class _ScriptState:
-    """Base of the classes ``__torch__.*`` names unpickle to: instances only collect the state BUILD gives them."""
+class _ScriptState(Holder):
+    """Base of the classes ``__torch__.*`` names unpickle to: instances only collect the state BUILD gives them, and
+    become :class:`ScriptObject` in the result."""
 
     qualname = ""
 
@@ -96,21 +93,18 @@ class _ScriptState:
 
     def __setstate__(self, state) -> None:
         if not isinstance(state, dict):
-            raise _Malformed(f"state of {self.qualname} is not a dict")
+            raise Malformed(f"state of {self.qualname} is not a dict")
         self.state = state
 
+    def result(self, memo: dict[int, Any], depth: int) -> ScriptObject:
+        out = memo[id(self)] = ScriptObject(type(self).qualname)
+        if not isinstance(self.state, dict):
+            raise Malformed(f"{type(self).qualname} has no state")
+        out.attributes = {str(k): convert(v, memo, depth + 1) for k, v in self.state.items()}
+        return out
 
-class _Storage:
-    __slots__ = ("array",)
 
-    def __init__(self, array: np.ndarray):
-        self.array = array
-
-
-class _Tensor:
-    """A rebuilt tensor while unpickling (unwrapped by ``_convert``): no ``__setstate__``, no ``__dict__``, so the
-    pickle cannot BUILD, SETITEM or APPEND into the numpy array."""
-
+class _Storage(Part):
     __slots__ = ("array",)
 
     def __init__(self, array: np.ndarray):
@@ -134,7 +128,7 @@ class _Archive:
             infos = self.zip.infolist()
         except (zipfile.BadZipFile, zlib.error, EOFError, OSError, ValueError, IndexError, OverflowError,
                 UnicodeDecodeError, NotImplementedError, RuntimeError) as e:
-            raise ProxycodecError(f"not a PyTorch zip archive ({_short(e)})", path) from None
+            raise ProxycodecError(f"not a PyTorch zip archive ({short_error(e)})", path) from None
         if len(infos) > MAX_RECORDS:
             raise ProxycodecError(f"archive holds {len(infos)} records, more than {MAX_RECORDS}", path)
         self.infos = {i.filename: i for i in infos}
@@ -159,17 +153,13 @@ class _Archive:
             data = self.zip.read(info)
         except (zipfile.BadZipFile, zlib.error, EOFError, OSError, ValueError, NotImplementedError, RuntimeError,
                 OverflowError, IndexError) as e:
-            raise ProxycodecError(f"archive record {name!r} is corrupt ({_short(e)})", self.path) from None
+            raise ProxycodecError(f"archive record {name!r} is corrupt ({short_error(e)})", self.path) from None
         if len(data) != info.file_size:
             raise ProxycodecError(f"archive record {name!r} is truncated", self.path)
         return data
 
     def close(self) -> None:
         self.zip.close()
-
-
-def _short(e: BaseException) -> str:
-    return f"{type(e).__name__}: {str(e).splitlines()[0][:120] if str(e) else ''}".rstrip(": ")
 
 
 class _Unpickler(pickle.Unpickler):
@@ -187,10 +177,10 @@ class _Unpickler(pickle.Unpickler):
         if self.allow_script and (module == "__torch__" or module.startswith("__torch__.")):
             qual = f"{module}.{name}"
             if len(qual) > 512 or not all(p.isidentifier() for p in qual.split(".")):
-                raise _Malformed(f"bad class name {qual[:80]!r}")
+                raise Malformed(f"bad class name {qual[:80]!r}")
             if qual not in self.classes:
                 if len(self.classes) > 4096:
-                    raise _Malformed("too many module classes")
+                    raise Malformed("too many module classes")
                 self.classes[qual] = type("ScriptState", (_ScriptState,), {"qualname": qual, "__slots__": ()})
             return self.classes[qual]
         if module == "torch._utils" and name == "_rebuild_tensor_v2":
@@ -201,30 +191,30 @@ class _Unpickler(pickle.Unpickler):
             return collections.OrderedDict
         if module == "torch" and name in STORAGE_DTYPES:
             return _StorageType(name, np.dtype(self.archive.endian + STORAGE_DTYPES[name]))
-        raise _Malformed(f"refused to load {module}.{name}: only tensors and module state are read")
+        raise Malformed(f"refused to load {module}.{name}: only tensors and module state are read")
 
     def persistent_load(self, pid):
         if not (isinstance(pid, tuple) and len(pid) == 5 and pid[0] == "storage"):
-            raise _Malformed(f"unknown persistent id {str(pid)[:80]!r}")
+            raise Malformed(f"unknown persistent id {str(pid)[:80]!r}")
         _, stype, key, _location, numel = pid
         if not isinstance(stype, _StorageType):
-            raise _Malformed("storage without a storage type")
+            raise Malformed("storage without a storage type")
         if not (isinstance(key, str) and _KEY.fullmatch(key)):
-            raise _Malformed(f"bad storage key {str(key)[:80]!r}")
+            raise Malformed(f"bad storage key {str(key)[:80]!r}")
         if not (isinstance(numel, int) and not isinstance(numel, bool) and numel >= 0):
-            raise _Malformed(f"bad storage size {str(numel)[:40]!r}")
+            raise Malformed(f"bad storage size {str(numel)[:40]!r}")
         if key in self.storages:
             st = self.storages[key]
             if st.array.dtype != stype.dtype or st.array.size != numel:
-                raise _Malformed(f"storage {key} is declared twice with different types or sizes")
+                raise Malformed(f"storage {key} is declared twice with different types or sizes")
             return st
         nbytes = numel * stype.dtype.itemsize
         name = f"{self.archive.prefix}data/{key}"
         info = self.archive.infos.get(name)
         if info is None:
-            raise _Malformed(f"storage record {name!r} is missing")
+            raise Malformed(f"storage record {name!r} is missing")
         if info.file_size != nbytes:
-            raise _Malformed(f"storage {key} declares {numel} x {stype.dtype.itemsize} B but its record holds "
+            raise Malformed(f"storage {key} declares {numel} x {stype.dtype.itemsize} B but its record holds "
                              f"{info.file_size} B")
         raw = self.archive.read(name, nbytes)
         arr = np.frombuffer(raw, dtype=stype.dtype)
@@ -234,84 +224,33 @@ class _Unpickler(pickle.Unpickler):
     def rebuild_tensor(self, storage, offset, size, stride, requires_grad=False, hooks=None, metadata=None):
         """``torch._utils._rebuild_tensor_v2`` with numpy: a copy of the strided view, bounds checked first."""
         if not isinstance(storage, _Storage):
-            raise _Malformed("a tensor without a storage")
-        if not (_int_tuple(size) and _int_tuple(stride) and len(size) == len(stride) <= MAX_NDIM):
-            raise _Malformed(f"bad tensor shape {str(size)[:80]} / stride {str(stride)[:80]}")
+            raise Malformed("a tensor without a storage")
+        if not (int_tuple(size) and int_tuple(stride) and len(size) == len(stride) <= MAX_NDIM):
+            raise Malformed(f"bad tensor shape {str(size)[:80]} / stride {str(stride)[:80]}")
         if not (isinstance(offset, int) and not isinstance(offset, bool) and offset >= 0):
-            raise _Malformed(f"bad storage offset {str(offset)[:40]!r}")
+            raise Malformed(f"bad storage offset {str(offset)[:40]!r}")
         arr = storage.array
         numel = math.prod(size)
         if numel == 0:
             if any(s > arr.size + 1 for s in size):
-                raise _Malformed(f"empty tensor of shape {size} is implausible")
-            return _Tensor(np.zeros(size, dtype=arr.dtype.newbyteorder("=")))
+                raise Malformed(f"empty tensor of shape {size} is implausible")
+            return ArrayHolder(np.zeros(size, dtype=arr.dtype.newbyteorder("=")))
         last = offset + sum((s - 1) * st for s, st in zip(size, stride))
         if last >= arr.size or numel > arr.size:
-            raise _Malformed(f"tensor of shape {tuple(size)} (offset {offset}, stride {tuple(stride)}) runs past "
+            raise Malformed(f"tensor of shape {tuple(size)} (offset {offset}, stride {tuple(stride)}) runs past "
                              f"its storage of {arr.size} elements")
         self.budget -= numel * arr.dtype.itemsize
         if self.budget < 0:
-            raise _Malformed("the tensors add up to far more than the file holds")
+            raise Malformed("the tensors add up to far more than the file holds")
         view = np.lib.stride_tricks.as_strided(arr[offset:], shape=size,
                                                strides=tuple(st * arr.dtype.itemsize for st in stride))
-        return _Tensor(np.array(view, dtype=arr.dtype.newbyteorder("="), copy=True))
-
-
-def _int_tuple(t) -> bool:
-    return isinstance(t, tuple) and all(isinstance(v, int) and not isinstance(v, bool) and v >= 0 for v in t)
+        return ArrayHolder(np.array(view, dtype=arr.dtype.newbyteorder("="), copy=True))
 
 
 def _rebuild_parameter(data, requires_grad=False, hooks=None):
-    if not isinstance(data, _Tensor):
-        raise _Malformed("a parameter that is not a tensor")
+    if not isinstance(data, ArrayHolder):
+        raise Malformed("a parameter that is not a tensor")
     return data
-
-
-def _convert(obj, memo: dict[int, Any] | None = None, depth: int = 0):
-    """The unpickled graph with state holders turned into :class:`ScriptObject`; a shared object is converted once
-    (so a pickle that references one list many times at many levels cannot make this exponential)."""
-    memo = {} if memo is None else memo
-    if depth > 64:
-        raise _Malformed("module state nested too deeply")
-    if id(obj) in memo:
-        return memo[id(obj)]
-    if isinstance(obj, _ScriptState):
-        out = memo[id(obj)] = ScriptObject(type(obj).qualname)
-        if not isinstance(obj.state, dict):
-            raise _Malformed(f"{type(obj).qualname} has no state")
-        out.attributes = {str(k): _convert(v, memo, depth + 1) for k, v in obj.state.items()}
-    elif isinstance(obj, dict):
-        out = memo[id(obj)] = {}
-        out.update((k, _convert(v, memo, depth + 1)) for k, v in obj.items())
-    elif isinstance(obj, list):
-        out = memo[id(obj)] = []
-        out.extend(_convert(v, memo, depth + 1) for v in obj)
-    elif isinstance(obj, tuple):
-        out = memo[id(obj)] = tuple(_convert(v, memo, depth + 1) for v in obj)
-    elif isinstance(obj, _Tensor):
-        out = obj.array
-    elif isinstance(obj, (_Storage, _StorageType)):
-        raise _Malformed("a bare storage outside a tensor")
-    else:
-        out = obj
-    return out
-
-
-def _scan(data: bytes) -> None:
-    """Parse the pickle's opcodes without building anything (``pickletools.genops``) before the unpickler runs:
-    CPython's unpickler sizes its memo table by the largest index a PUT names, so a 10-byte pickle naming index 2^32
-    would make it allocate 32 GB. Memo indices must come in order (each PUT at most one past the previous ones), as
-    every pickler writes them."""
-    puts = 0
-    for op, arg, _ in pickletools.genops(data):
-        if op.name in ("PUT", "BINPUT", "LONG_BINPUT"):
-            if not isinstance(arg, int) or not 0 <= arg <= puts:
-                raise _Malformed(f"memo index {str(arg)[:20]} out of order")
-            puts = max(puts, arg + 1)
-        elif op.name == "MEMOIZE":
-            puts += 1
-        elif op.name == "STOP":
-            return
 
 
 def _load(path: str | os.PathLike, allow_script: bool):
@@ -319,16 +258,7 @@ def _load(path: str | os.PathLike, allow_script: bool):
     archive = _Archive(path)
     try:
         data = archive.read(archive.prefix + "data.pkl", MAX_PICKLE_BYTES)
-        try:
-            _scan(data)
-            return _convert(_Unpickler(archive, data, allow_script).load())
-        except ProxycodecError:
-            raise
-        except _Malformed as e:
-            raise ProxycodecError(str(e), path) from None
-        except (pickle.UnpicklingError, EOFError, ValueError, TypeError, KeyError, IndexError, AttributeError,
-                OverflowError, RecursionError, UnicodeDecodeError, zipfile.BadZipFile, zlib.error) as e:
-            raise ProxycodecError(f"malformed pickle in data.pkl ({_short(e)})", path) from None
+        return restricted_load(_Unpickler(archive, data, allow_script), data, path, " in data.pkl")
     finally:
         archive.close()
 
@@ -357,7 +287,7 @@ def read_torch_checkpoint(path: str | os.PathLike) -> dict:
         obj = torch.load(path, map_location="cpu", weights_only=True)
     except (pickle.UnpicklingError, RuntimeError, EOFError, ValueError, TypeError, KeyError, IndexError,
             AttributeError, OverflowError, zipfile.BadZipFile) as e:
-        raise ProxycodecError(f"torch.load(weights_only=True) refused it ({_short(e)})", path) from None
+        raise ProxycodecError(f"torch.load(weights_only=True) refused it ({short_error(e)})", path) from None
 
     def to_numpy(o, depth=0):
         if depth > 64:

@@ -7,6 +7,7 @@ The Python API mirrors the CLI::
     model = proxycodec.decode("scene.pxc")                      # leaves regenerated -> SceneModel
     renders = proxycodec.render("scene.pxc", xi=0.3)            # one RenderResult per stored camera
     info = proxycodec.stats("scene.pxc")                        # what is inside and what it costs
+    f = proxycodec.query_features("scene.pxc", points, xi=0.3)  # anchor features at any [N, 3] points
 
 The heavy modules (torch) load on first use, so ``import proxycodec`` and ``proxycodec --help`` stay fast.
 """
@@ -23,7 +24,8 @@ _os.environ.setdefault("GOMP_SPINCOUNT", "1000")
 
 from .errors import ProxycodecError  # noqa: E402
 
-_LAZY = {"encode": "codec", "decode": "codec", "load": "codec", "render": "codec", "stats": "codec"}
+_LAZY = {"encode": "codec", "decode": "codec", "load": "codec", "render": "codec", "stats": "codec",
+         "query_features": "query", "FeatureField": "query"}
 
 
 def __getattr__(name):
@@ -34,4 +36,5 @@ def __getattr__(name):
     raise AttributeError(f"module 'proxycodec' has no attribute {name!r}")
 
 
-__all__ = ["ProxycodecError", "__version__", "encode", "decode", "load", "render", "stats"]
+__all__ = ["FeatureField", "ProxycodecError", "__version__", "encode", "decode", "load", "query_features", "render",
+           "stats"]

@@ -496,6 +496,12 @@ class CompressedScene:
     def to_model(self) -> SceneModel:
         return _model_from_sections(self.meta, self.sections, lambda m: ContainerError(m, self.path))
 
+    def predictor(self) -> ResidualPredictor:
+        """The stored residual predictor (eval mode): what regenerates the leaves in :meth:`to_model`."""
+        err = lambda m: ContainerError(m, self.path)  # noqa: E731
+        return guarded(lambda: _predictor_from_sections(
+            stored_anchors(self.meta, self.sections, err).predictor_config, self.sections, err), err)
+
 
 def load(path: str | os.PathLike) -> CompressedScene:
     """Read and verify a scene container without regenerating anything (raises ``ContainerError``)."""
@@ -509,6 +515,10 @@ def decode(path: str | os.PathLike) -> SceneModel:
     return load(path).to_model()
 
 
+def _predictor_from_sections(pcfg: PredictorConfig, sections: dict[str, np.ndarray], err) -> ResidualPredictor:
+    return ResidualPredictor.from_arrays(pcfg, weights_from_sections("predictor", sections, err)).eval()
+
+
 def _model_from_sections(meta: dict, sections: dict[str, np.ndarray], err) -> SceneModel:
     return guarded(_model_from_sections_unchecked, err, meta, sections, err)
 
@@ -517,7 +527,7 @@ def _model_from_sections_unchecked(meta: dict, sections: dict[str, np.ndarray], 
     a = stored_anchors(meta, sections, err)  # the stored arrays, dequantised, and the network configurations
     pos, mask, dcfg, pcfg = a.positions, a.proxy_mask, a.decoder_config, a.predictor_config
     decoder = GaussianDecoder.from_arrays(dcfg, weights_from_sections("decoder", sections, err)).eval()
-    predictor = ResidualPredictor.from_arrays(pcfg, weights_from_sections("predictor", sections, err)).eval()
+    predictor = _predictor_from_sections(pcfg, sections, err)
     # leaves
     pos_t, feat_t, off_t = torch.from_numpy(pos), torch.from_numpy(a.features), torch.from_numpy(a.offsets)
     leaves = torch.from_numpy(np.flatnonzero(~mask))

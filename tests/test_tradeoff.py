@@ -351,6 +351,12 @@ def test_bench_quick_end_to_end_in_process(tiny, tmp_path):
     assert any(p["pareto"] for p in res["points"])
     md = (out / "bench.md").read_text()
     assert "### Sweep: proxy_ratio" in md and "Pareto" in md and "Render time per resolution" in md
+    # LPIPS beside PSNR/SSIM, and one line saying whether it was computed (and from which weights)
+    from proxycodec.perceptual import MIN_SIDE, lpips_status
+
+    ok, note = lpips_status()
+    assert "| avg LPIPS |" in md and md.count(note) == 1 and d["lpips_note"] == note
+    assert "lpips_avg" in d and (d["lpips_avg"] is None) == (not ok or SIZE < MIN_SIDE)
 
 
 def test_bench_subprocess_steps_and_resume(tiny, tmp_path):

@@ -46,8 +46,8 @@ def mark_pareto(points: list[dict]) -> None:
             p["pareto"] = i in front
 
 
-POINT_HEADER = ("| point | bytes | avg PSNR | avg SSIM | PSNR 10% | PSNR 100% | fit s | encode s | decode s | "
-                "Pareto | peak RSS MB |\n|---|---:|---:|---:|---:|---:|---:|---:|---:|:-:|---|")
+POINT_HEADER = ("| point | bytes | avg PSNR | avg SSIM | avg LPIPS | PSNR 10% | PSNR 100% | fit s | encode s | "
+                "decode s | Pareto | peak RSS MB |\n|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|:-:|---|")
 
 
 def point_row(p: dict, label: str | None = None) -> str:
@@ -59,6 +59,7 @@ def point_row(p: dict, label: str | None = None) -> str:
     if p.get("errors"):
         name += " — " + "; ".join(str(e) for e in p["errors"] if e)
     return (f"| {name} | {_f(p['bytes'], ',')} | {_f(p['psnr_avg'])} | {_f(p['ssim_avg'], '.4f')} | "
+            f"{_f(p.get('lpips_avg'), '.4f')} | "
             f"{_f(p['psnr_10'])} | {_f(p['psnr_100'])} | {_f(p['fit_seconds'], '.0f')} | "
             f"{_f(p['encode_seconds'], '.1f')} | {_f(p['decode_seconds'], '.2f')} | "
             f"{'yes' if p.get('pareto') else ''} | {_rss(p)} |")
@@ -86,6 +87,9 @@ def markdown_report(title: str, meta: dict, points: list[dict], extra_sections: 
         "among the scene's points.",
         "",
     ]
+    notes = list(dict.fromkeys(p["lpips_note"] for p in points if p.get("lpips_note")))
+    if notes:  # LPIPS (AlexNet, v0.1) beside PSNR/SSIM when its weights are installed; one line either way
+        lines += ["; ".join(notes) + ".", ""]
     for scene in sorted({p["scene"] for p in points}, key=lambda s: [p["scene"] for p in points].index(s)):
         ps = [p for p in points if p["scene"] == scene]
         spec = m.get("scenes", {}).get(scene, {})

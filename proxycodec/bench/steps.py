@@ -129,8 +129,10 @@ def _step_eval(a: dict) -> dict:
     out.update({
         "views": views, "test_views_available": len(data.test_indices),
         "psnr_avg": s["psnr_avg"], "ssim_avg": s["ssim_avg"], "psnr_10": s["psnr_10"], "psnr_100": s["psnr_100"],
+        "lpips_avg": s["lpips_avg"], "lpips_note": rep.lpips_note,
         "per_resolution": [{"xi": d["xi"], "width": d["width"], "height": d["height"], "psnr": d["psnr"],
-                            "ssim": d["ssim"], "ms": None if d["seconds"] is None else 1000.0 * d["seconds"],
+                            "ssim": d["ssim"], "lpips": d["lpips"],
+                            "ms": None if d["seconds"] is None else 1000.0 * d["seconds"],
                             "gaussians": d["gaussians"]} for d in rep.per_resolution],
     })
     return out

@@ -42,7 +42,8 @@ def make_point(scene: str, pid: str, kind: str, *, fit: dict | None = None, enc:
     d = _res(dec) if dec is not None else v
     p: dict[str, Any] = {
         "scene": scene, "id": pid, "kind": kind, "bytes": bytes_ if bytes_ is not None else e.get("bytes"),
-        "psnr_avg": v.get("psnr_avg"), "ssim_avg": v.get("ssim_avg"), "psnr_10": v.get("psnr_10"),
+        "psnr_avg": v.get("psnr_avg"), "ssim_avg": v.get("ssim_avg"), "lpips_avg": v.get("lpips_avg"),
+        "lpips_note": v.get("lpips_note"), "psnr_10": v.get("psnr_10"),
         "psnr_100": v.get("psnr_100"),
         "fit_seconds": f.get("seconds"), "fit_iterations": f.get("iterations"),
         "encode_seconds": e.get("seconds"),
