@@ -50,7 +50,7 @@ class ConvertConfig:
     voxel_size: float = 0.0  # <= 0: automatic (choose_voxel)
     keep: float = 0.9  # automatic voxel: share of the Gaussians' weight the anchors' K slots must hold
     # automatic voxel: at most this many anchors. [D] Bytes: a stored anchor costs ~45 B in the container; lego's
-    # 129k-Gaussian PLY at the 90% rule would start with 27k anchors (~1.2 MB), at this cap 10.9k, trained to 31.4 dB
+    # 129k-Gaussian PLY at the 90% rule would start with 27k anchors (~1.2 MB), at this cap 10.9k, trained to 31.9 dB
     # against its renders (SPEC.md section 11)
     max_anchors: int = 12_000
     init_iters: int = 400  # regression steps of fit_attributes
