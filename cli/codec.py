@@ -108,7 +108,8 @@ def encode(scene, out, weights, proxy_ratio, proxy_selection, cell_size, feature
     if as_json:
         click.echo(json.dumps(r.to_json(), indent=2))
     else:
-        ratio = f", {r.ratio:.1f}x smaller than PLY + weights" if r.ratio else ""
+        what = "the 3DGS PLY" if r.meta.get("convert") else "PLY + weights"
+        ratio = f", {r.ratio:.1f}x smaller than {what}" if r.ratio else ""
         click.echo(f"wrote {r.path}: {r.file_bytes:,} B for {r.anchors} anchors ({r.proxies} proxies){ratio} "
                    f"in {r.seconds['total']:.1f} s")
 
@@ -251,12 +252,22 @@ def stats(file, as_json) -> None:
     click.echo(f"{s['file']}: proxycodec container v{s['format_version']}, kind {s['kind']}{fmt}, "
                f"{s['file_bytes']:,} B")
     if s.get("anchors") is not None and s["kind"] == "proxycodec.scene":
-        ratio = f", {s['ratio']:.1f}x smaller than PLY + weights ({s['source_bytes']:,} B)" if s["ratio"] else ""
+        kind = (s["metadata"].get("source") or {}).get("kind") if isinstance(s["metadata"], dict) else None
+        what = "the 3DGS PLY" if kind == "inria-3dgs" else "PLY + weights"
+        ratio = f", {s['ratio']:.1f}x smaller than {what} ({s['source_bytes']:,} B)" if s["ratio"] else ""
         click.echo(f"  {s['anchors']} anchors = {s['proxies']} proxies + {s['leaves']} leaves; "
                    f"{s['bits_per_anchor']:.1f} bits/anchor{ratio}")
         p = s.get("proxy") or {}
         click.echo(f"  positions {s['positions']}, offsets {s['offsets']}, bits {s['quant_bits']}, "
                    f"weights {s['weights_dtype']}, cell {p.get('cell_size_voxels', 0):g} voxels, seed {p.get('seed')}")
+        cv = s["metadata"].get("convert") if isinstance(s["metadata"], dict) else None
+        if isinstance(cv, dict) and isinstance(cv.get("report"), dict):
+            rep = (cv["report"].get("converted") or {})
+            rows = rep.get("per_resolution") if isinstance(rep.get("per_resolution"), list) else []
+            click.echo(f"  converted from the 3DGS PLY {(cv.get('source') or {}).get('name')}: "
+                       f"{cv.get('iterations')} iterations against its renders; held-out PSNR vs them: "
+                       + "  ".join(f"{r['xi']:g}: {r['psnr']:.2f}" for r in rows if r.get("psnr") is not None)
+                       + f"  (mean {rep.get('psnr') or float('nan'):.2f} dB)")
         d = s.get("distill") or {}
         rep = d.get("held_out") if isinstance(d, dict) else None
         if isinstance(rep, dict) and isinstance(rep.get("per_resolution"), list):

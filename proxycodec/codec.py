@@ -222,7 +222,8 @@ def encode(
     ``source``: a ``SceneModel``, the path of an anchor PLY (weights sidecar beside it), or (PLY, weights) paths.
     Knobs: the fields of ``EncodeConfig`` (given as ``config`` or as keyword arguments). ``predictor``: a trained
     ``ResidualPredictor`` (e.g. from stage-2 training) to fine-tune for ``predictor_iters`` (0: keep as is).
-    ``extra_meta``: JSON-able entries added to the container's metadata (``convert`` records the conversion).
+    ``extra_meta``: JSON-able entries added to (or replacing) the container's metadata (``convert`` records the
+    conversion, and the 3DGS PLY as the source).
     """
     unknown = set(knobs) - set(EncodeConfig.__dataclass_fields__)
     if unknown:
@@ -279,8 +280,8 @@ def encode(
         decoded = _drop_dead_offsets(decoded, sections, meta, q, cfg.dead_threshold, say)
     if distilled is not None:
         meta["distill"]["held_out"] = _held_out(decoded, source_model, distilled, cfg, say)
-    for k, v in (extra_meta or {}).items():
-        meta.setdefault(k, _jsonable(v))
+    for k, v in (extra_meta or {}).items():  # the caller's word wins (convert: the source is the 3DGS PLY)
+        meta[k] = _jsonable(v)
     packed, meta["weights_layout"] = pack_weights(sections)
     file_bytes = write_container(out, meta, packed, level=cfg.zstd_level)
     _, _, infos, _ = read_header(out)

@@ -430,11 +430,13 @@ def convert_and_encode(ply_path: str | os.PathLike, out: str | os.PathLike, conf
         keep = tmp / "anchors.ply"
     try:
         conv = convert(ply_path, keep, config, log=log)
-        info = {**conv.to_json(), "source": {"name": Path(ply_path).name, "bytes": Path(ply_path).stat().st_size},
-                "kept": None if tmp is not None else str(keep)}
+        src = {"name": Path(ply_path).name, "bytes": Path(ply_path).stat().st_size, "kind": "inria-3dgs"}
+        info = {**conv.to_json(), "source": src, "kept": None if tmp is not None else str(keep)}
         info.pop("path")
-        report = encode(keep, out, progress=log, extra_meta={"convert": info}, **encode_knobs)
+        # the container's source is the 3DGS PLY (stats' ratio is against it), not the intermediate anchor scene
+        report = encode(keep, out, progress=log, extra_meta={"convert": info, "source": src}, **encode_knobs)
     finally:
         if tmp is not None:
             shutil.rmtree(tmp, ignore_errors=True)
+    report.source_bytes = src["bytes"]
     return conv, report

@@ -252,6 +252,10 @@ def test_encode_converts_a_3dgs_ply_and_keeps_the_anchor_scene_when_asked(tmp_pa
     s = json.loads(CliRunner().invoke(cli, ["stats", str(tmp_path / "s.pxc"), "--json"]).output)
     conv = s["metadata"]["convert"]
     assert conv["source"]["name"] == "splats.ply" and conv["iterations"] == 12
+    assert s["source_bytes"] == src.stat().st_size  # the ratio is against the 3DGS PLY
+    assert "smaller than the 3DGS PLY" in res.output
+    text = CliRunner().invoke(cli, ["stats", str(tmp_path / "s.pxc")]).output
+    assert "smaller than the 3DGS PLY" in text and "converted from the 3DGS PLY splats.ply: 12 iterations" in text
     assert s["metadata"]["proxy"]["source"].startswith("fit")  # the conversion's stage-2 predictor, as fitted
     res = CliRunner().invoke(cli, ["--threads", "1", "decode", str(tmp_path / "s.pxc"), "--res", "0.3", "--view", "0",
                                    "-o", str(tmp_path / "d")])
