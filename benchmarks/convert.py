@@ -190,8 +190,7 @@ def _report(run, rows: dict) -> str:
                 per = {round(p["xi"], 1): p["psnr"] for p in r.get("per_resolution", [])}
                 cells = [("ref" if per.get(x, 0) is None else _fmt(per.get(x))) for x in RESOLUTIONS]
                 b = _bytes(rec, label)
-                lines.append(f"| {label} | {b:,} | " + " | ".join(cells) + f" | {_fmt(r.get('psnr_avg'))} | "
-                             f"{_fmt(r.get('ssim_avg'), 4)} |" if b else f"| {label} | n/a | " + " | ".join(cells)
+                lines.append(f"| {label} | {f'{b:,}' if b else 'n/a'} | " + " | ".join(cells)
                              + f" | {_fmt(r.get('psnr_avg'))} | {_fmt(r.get('ssim_avg'), 4)} |")
         spz_b, ours_b = _bytes(rec, "SPZ"), _bytes(rec, "ours")
         if spz_b and ours_b:

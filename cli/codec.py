@@ -216,6 +216,7 @@ def stats(file, as_json) -> None:
     """Sizes and counts of a container, an anchor PLY, a Scaffold-GS output or an INRIA 3DGS PLY (the bytes of
     each part, adding up to the file)."""
     from .. import codec
+    from ..distill import report_line
 
     s = codec.stats(file)
     if as_json:
@@ -262,20 +263,15 @@ def stats(file, as_json) -> None:
                    f"weights {s['weights_dtype']}, cell {p.get('cell_size_voxels', 0):g} voxels, seed {p.get('seed')}")
         cv = s["metadata"].get("convert") if isinstance(s["metadata"], dict) else None
         if isinstance(cv, dict) and isinstance(cv.get("report"), dict):
-            rep = (cv["report"].get("converted") or {})
-            rows = rep.get("per_resolution") if isinstance(rep.get("per_resolution"), list) else []
             click.echo(f"  converted from the 3DGS PLY {(cv.get('source') or {}).get('name')}: "
                        f"{cv.get('iterations')} iterations against its renders; held-out PSNR vs them: "
-                       + "  ".join(f"{r['xi']:g}: {r['psnr']:.2f}" for r in rows if r.get("psnr") is not None)
-                       + f"  (mean {rep.get('psnr') or float('nan'):.2f} dB)")
+                       + report_line(cv["report"].get("converted") or {}))
         d = s.get("distill") or {}
         rep = d.get("held_out") if isinstance(d, dict) else None
         if isinstance(rep, dict) and isinstance(rep.get("per_resolution"), list):
             src = f"the photos of {d['images']}" if d.get("images") else "the source's renders"
             click.echo(f"  distilled {d.get('iterations')} iterations against {src}; decoded vs source renders on "
-                       f"{len(rep.get('views', []))} held-out views: "
-                       + "  ".join(f"{r['xi']:g}: {r['psnr']:.2f}" for r in rep["per_resolution"])
-                       + f"  (mean {rep.get('psnr', float('nan')):.2f} dB)")
+                       f"{len(rep.get('views', []))} held-out views: " + report_line(rep))
     click.echo(f"  {'section':34s} {'dtype':>6s} {'shape':>14s} {'stored':>10s} {'raw':>10s}")
     click.echo(f"  {'(header + table of contents)':34s} {'':>6s} {'':>14s} {s['header_and_toc_bytes']:10,}")
     for sec in s["sections"]:

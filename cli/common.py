@@ -97,7 +97,9 @@ def render_views(model, resolutions, out_dir: Path, views, backend: str, prefix:
             with atomic_write(path) as fh:
                 Image.fromarray(_image_to_uint8(r.image)).save(fh, format="PNG")
             rows.append({"view": i, "xi": xi, "width": w, "height": h, "gaussians": r.projected.count,
-                         "anchors_visible": len(getattr(r, "visible_anchor_index", ())), "seconds": dt, "path": str(path)})
+                         # an INRIA PLY's render (explicit Gaussians) has no anchors
+                         "anchors_visible": len(getattr(r, "visible_anchor_index", ())), "seconds": dt,
+                         "path": str(path)})
             click.echo(f"view {i:3d}  xi {xi:5.3f}  {w:4d}x{h:<4d}  {r.projected.count:7d} Gaussians  "
                        f"{dt * 1000:7.1f} ms  -> {path}")
     return rows

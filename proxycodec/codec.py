@@ -325,15 +325,14 @@ def _distill(model: SceneModel, fitted: tuple, cfg: EncodeConfig, say: Progress)
 
 def _held_out(decoded: SceneModel, source: SceneModel, distilled, cfg: EncodeConfig, say: Progress) -> dict:
     """The decoded scene against the source's anti-aliased renders on held-out views, 10%..100%."""
-    from .distill import TeacherViews, held_out_report
+    from .distill import TeacherViews, held_out_report, report_line
 
     views = distilled.views
     if not isinstance(views, TeacherViews):  # distilled against photos: the report still compares with the source
         cams = [views.cameras[i] for i in views.test_indices] or list(views.cameras)
         views = TeacherViews(source, cams, held_out=list(range(len(cams))))
     rep = held_out_report(decoded, views)
-    say("decoded vs source renders on held-out views: " + "  ".join(
-        f"{r['xi']:.1f}: {r['psnr']:.2f}" for r in rep["per_resolution"]) + f"  (mean {rep['psnr']:.2f} dB)")
+    say("decoded vs source renders on held-out views: " + report_line(rep))
     return rep
 
 
@@ -587,14 +586,25 @@ def _inria_stats(path: Path) -> dict:
     ply = read_inria_ply(path)  # validates the layout and the values
     size = path.stat().st_size
     N = int(header.count)
-    itemsize = {n: np.dtype(c).itemsize for n, c in header.properties}
-    by_group = {g: N * sum(itemsize[n] for n in header.names if any(
-        n == p or (p.endswith("_") and n.startswith(p)) for p in prefixes)) for g, prefixes in INRIA_GROUPS.items()}
-    body = N * sum(itemsize.values())
+    by_group, body = _group_bytes(header, INRIA_GROUPS)
     return {"file": str(path), "type": "inria-3dgs-ply", "gaussians": N, "sh_degree": ply.sh_degree,
             "file_bytes": size, "header_bytes": header.header_size, "bytes_by_group": by_group,
             "trailing_bytes": size - header.header_size - body, "bytes_per_gaussian": body / N if N else None,
             "properties": len(header.names), "format": header.format}
+
+
+def _group_bytes(header, groups: dict[str, tuple[str, ...]]) -> tuple[dict[str, int], int]:
+    """-> (bytes of each group of PLY properties, bytes of all vertices). A group names properties exactly or, ending
+    in ``_``, by prefix; properties no group names are counted under ``other``."""
+    itemsize = {n: np.dtype(c).itemsize for n, c in header.properties}
+
+    def member(n: str, prefixes) -> bool:
+        return any(n == p or (p.endswith("_") and n.startswith(p)) for p in prefixes)
+
+    N = int(header.count)
+    by_group = {g: N * sum(sz for n, sz in itemsize.items() if member(n, prefixes)) for g, prefixes in groups.items()}
+    by_group["other"] = N * sum(sz for n, sz in itemsize.items() if not any(member(n, ps) for ps in groups.values()))
+    return by_group, N * sum(itemsize.values())
 
 
 def _container_stats(path: Path) -> dict:
@@ -649,19 +659,12 @@ def _ply_stats(path: Path, scaffold_mlps: list[Path] | None = None, scaffold_mod
     M = int(header.count)
     groups = {"positions": ("x", "y", "z"), "offsets": ("f_offset_",), "features": ("f_anchor_feat_",),
               "scalings": ("scale_",), "unused": ("nx", "ny", "nz", "opacity", "rot_")}
-    known = {n for n in names if any(n == p or (p.endswith("_") and n.startswith(p)) for ps in groups.values()
-                                     for p in ps)}
-    groups["other"] = tuple(n for n in names if n not in known)
-    itemsize = dict(zip(names, [np.dtype(header.dtype()[n]).itemsize for n in names]))
-    by_group = {}
-    for g, prefixes in groups.items():
-        by_group[g] = M * sum(itemsize[n] for n in names if any(n == p or (p.endswith("_") and n.startswith(p))
-                                                                 for p in prefixes))
+    by_group, body = _group_bytes(header, groups)
     total = size + (wbytes or 0)
     out = {"file": str(path), "type": "ply", "anchors": M, "file_bytes": size, "weights_file": str(w),
            "weights_bytes": wbytes, "total_bytes": total, "bits_per_anchor": 8.0 * total / M if M else None,
            "raw_bytes_by_group": by_group, "properties": len(names), "header_bytes": header.header_size,
-           "trailing_bytes": size - header.header_size - M * sum(itemsize.values())}
+           "trailing_bytes": size - header.header_size - body}
     if scaffold_mlps is not None:
         out["scaffold_gs"] = {"mode": scaffold_mode, "mlp_files": [p.name for p in scaffold_mlps]}
     return out

@@ -160,17 +160,13 @@ def choose_voxel(g: Gaussians, K: int, cfg: ConvertConfig) -> VoxelChoice:
     best = None
     v = g.extent / 16.0
     while v >= g.extent / 4096.0:
-        M, kept, share = _kept(g.means, w, v, K)
-        if M > cfg.max_anchors:
-            break
-        best = VoxelChoice(v, M, kept, share, True)
-        if share >= cfg.keep:
+        choice = VoxelChoice(v, *_kept(g.means, w, v, K), True)
+        if choice.anchors > cfg.max_anchors:
+            return best or choice  # even the coarsest voxel makes too many anchors: the coarsest
+        best = choice
+        if choice.kept_weight >= cfg.keep:
             return best
         v /= 2.0 ** 0.125
-    if best is None:  # even the coarsest voxel makes too many anchors: the coarsest
-        v = g.extent / 16.0
-        M, kept, share = _kept(g.means, w, v, K)
-        best = VoxelChoice(v, M, kept, share, True)
     return best
 
 
@@ -184,7 +180,6 @@ class SlotTargets:
     log_scale: torch.Tensor  # [M, K, 3]
     quat: torch.Tensor  # [M, K, 4] unit
     sh: torch.Tensor  # [M, K, C, 3]
-    means: torch.Tensor  # [M, K, 3] world (for the view directions)
 
 
 def anchors_from_gaussians(g: Gaussians, voxel: float, K: int, F: int) -> tuple[AnchorScene, SlotTargets]:
@@ -208,15 +203,12 @@ def anchors_from_gaussians(g: Gaussians, voxel: float, K: int, F: int) -> tuple[
     alpha[cell, slot] = g.alpha[src]
     sh = np.zeros((M, K) + g.sh.shape[1:], np.float32)
     sh[cell, slot] = g.sh[src]
-    means = np.repeat(anchors[:, None, :], K, 1)
-    means[cell, slot] = g.means[src]
     base = np.log(2.0 * np.where(used[..., None], s, 0.0).max(axis=(1, 2)).clip(min=1e-7 * g.extent))
     scal = np.concatenate([np.full((M, 3), math.log(voxel)), np.repeat(base[:, None], 3, 1)], 1)
     f32 = lambda a: torch.tensor(a, dtype=torch.float32)  # noqa: E731
     scene = AnchorScene(f32(anchors), torch.zeros(M, F), f32(offsets), f32(scal), float(voxel),
                         {"name": "converted"}).validate()
-    targets = SlotTargets(torch.from_numpy(used), f32(alpha), f32(np.log(s)), f32(q), torch.from_numpy(sh),
-                          f32(means))
+    targets = SlotTargets(torch.from_numpy(used), f32(alpha), f32(np.log(s)), f32(q), torch.from_numpy(sh))
     return scene, targets
 
 
@@ -364,7 +356,7 @@ def convert(ply_path: str | os.PathLike, out_ply: str | os.PathLike, config: Con
     """Convert the INRIA 3DGS PLY at ``ply_path`` into an anchor scene at ``out_ply`` (+ weights sidecar, written
     atomically by ``fit``; resumable from its checkpoint, ``<out>.ckpt.pxc``, saved on interrupt as ``fit`` saves
     it). ``stop_after`` (tests): interrupt after that many training iterations."""
-    from .distill import TeacherViews, held_out_report
+    from .distill import TeacherViews, held_out_report, report_line
     from .explicit import ExplicitModel
     from .formats.inria_ply import read_inria_ply
     from .scaffold_gs import find_cameras_json, read_scaffold_cameras
@@ -389,18 +381,17 @@ def convert(ply_path: str | os.PathLike, out_ply: str | os.PathLike, config: Con
         where = f"automatic, {layout} ({len(cams)} views of {config.view_size} px)"
     log(f"teacher views: {where}")
     views = TeacherViews(teacher, cams, backend=config.fit.backend)
-    start, choice = initial_model(g, config, cams, log)
+    # resuming: the checkpoint replaces the start's features and decoder, so they are not fitted again
+    start, choice = initial_model(g, replace(config, init_iters=0) if resume else config, cams, log)
     t_init = time.perf_counter() - t0
-    res = fit(views, out_ply, config.fit.with_lr_scale(config.lr_scale), dataset_root=str(ply_path), resume=resume, log=log, start=start,
-              stop_after=stop_after)
+    res = fit(views, out_ply, config.fit.with_lr_scale(config.lr_scale), dataset_root=str(ply_path), resume=resume,
+              log=log, start=start, stop_after=stop_after)
     t_fit = time.perf_counter() - t0 - t_init
     model = res.model
     rep = held_out_report(model, views, max_views=report_views, backend=config.fit.backend)
     src = held_out_report(teacher, views, max_views=report_views, backend=config.fit.backend)
-    for what, r in (("converted vs the source's anti-aliased renders (held out)", rep),
-                    ("the source PLY rendered directly, same reference     ", src)):
-        log(f"{what}: " + "  ".join(f"{x['xi']:.1f}: " + ("  ref" if x["psnr"] is None else f"{x['psnr']:.2f}")
-                                    for x in r["per_resolution"]) + f"  (mean {r['psnr']:.2f} dB)")
+    log(f"converted vs the source's anti-aliased renders (held out): {report_line(rep)}")
+    log(f"the source PLY rendered directly, same reference:         {report_line(src)}")
     seconds = {"setup": t_init, "train": res.seconds, "fit_call": t_fit, "total": time.perf_counter() - t0}
     return ConvertResult(Path(out_ply), model, choice, where, layout, res.iterations, seconds,
                          {"converted": rep, "source_direct": src}, res.history)

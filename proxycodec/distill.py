@@ -26,7 +26,8 @@ from .metrics import psnr, ssim
 from .model import SceneModel
 from .train import FitConfig, Trainer
 
-__all__ = ["REPORT_RESOLUTIONS", "DistillResult", "TeacherViews", "distill", "held_out_report", "teacher_cameras"]
+__all__ = ["REPORT_RESOLUTIONS", "DistillResult", "TeacherViews", "distill", "held_out_report", "report_line",
+           "teacher_cameras"]
 
 #: the resolutions the held-out report measures (10%..100%, as the paper's tables)
 REPORT_RESOLUTIONS = tuple(round(0.1 * k, 1) for k in range(1, 11))
@@ -186,6 +187,15 @@ def held_out_report(model: SceneModel, views: TeacherViews, resolutions=REPORT_R
     # and the mean is over the other resolutions
     return {"views": [int(i) for i in idx], "held_out": bool(views.test_indices), "per_resolution": rows,
             "psnr": _mean([r["psnr"] for r in rows]), "ssim": _mean([r["ssim"] for r in rows])}
+
+
+def report_line(rep: dict) -> str:
+    """A held-out report on one line: PSNR per resolution (``ref`` where undefined: the teacher against itself) and
+    the mean, as the encode log, ``convert`` and ``stats`` print it."""
+    rows = rep.get("per_resolution") or []
+    mean = rep.get("psnr")
+    return "  ".join(f"{r['xi']:.1f}: " + ("ref" if r.get("psnr") is None else f"{r['psnr']:.2f}") for r in rows) + \
+        f"  (mean {float('nan') if mean is None else mean:.2f} dB)"
 
 
 def _mean(values) -> float | None:

@@ -33,8 +33,9 @@ from .camera import Camera
 from .errors import ProxycodecError
 from .formats.torchscript import ScriptObject, read_torch_checkpoint, read_torchscript
 
-__all__ = ["find_cameras_json", "write_cameras_json", "ScaffoldFiles", "is_scaffold_output", "find_scaffold_files", "load_scaffold_output",
-           "read_cfg_args", "read_scaffold_cameras", "SPLIT_FILES", "CHECKPOINT_FILE"]
+__all__ = ["ScaffoldFiles", "is_scaffold_output", "find_scaffold_files", "load_scaffold_output",
+           "read_cfg_args", "read_scaffold_cameras", "find_cameras_json", "write_cameras_json", "SPLIT_FILES",
+           "CHECKPOINT_FILE"]
 
 #: Mode "split": one TorchScript archive per network (Scaffold-GS's file names).
 SPLIT_FILES = {"opacity": "opacity_mlp.pt", "cov": "cov_mlp.pt", "color": "color_mlp.pt",
@@ -254,7 +255,6 @@ def write_cameras_json(path: str | os.PathLike, cameras: list[Camera]) -> None:
                      "fy": float(c.fy), "fx": float(c.fx)})
     with atomic_write(path, "w") as fh:
         json.dump(rows, fh)
-
 
 
 # ---------------------------------------------------------------------------------------------- the networks

@@ -179,7 +179,7 @@ def _step_convert(a: dict) -> dict:
     from ..train import FitConfig
 
     c = dict(a["convert"])
-    fit = FitConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in c.pop("fit", {}).items()})
+    fit = FitConfig.from_json(c.pop("fit", {}))
     cfg = ConvertConfig(fit=fit, **{k: tuple(v) if isinstance(v, list) else v for k, v in c.items()})
     log = lambda s: print(s, file=sys.stderr, flush=True)  # noqa: E731
     t0 = time.perf_counter()
