@@ -157,6 +157,10 @@ def _fit_explicit(dataset, out, run: dict, max_width, seed, images, test_every, 
 @click.option("--max-width", type=int, default=None, help="100% reference width [default: the one the scene was fit at].")
 @click.option("--res", "res", default=None, help="Comma-separated resolution ratios [default: 0.1..1.0 and "
               "0.025,0.05,0.075,1.1..1.5].")
+@click.option("--protocol", type=click.Choice(["ours", "mip-splatting"]), default="ours", show_default=True,
+              help="ours: the resolutions above against box-filtered targets, 10%..100% averaged. mip-splatting: "
+                   "full, 1/2, 1/4, 1/8 of the reference against ground truth built as Mip-Splatting's multi-scale "
+                   "Blender data (its Table 2); the reference must be the image size / 2^k.")
 @click.option("--views", "n_views", type=int, default=None, help="Evaluate only the first N test views.")
 @click.option("--images", default="images", show_default=True, help="COLMAP image folder.")
 @click.option("--test-every", type=int, default=8, show_default=True)
@@ -166,12 +170,14 @@ def _fit_explicit(dataset, out, run: dict, max_width, seed, images, test_every, 
               help="Coverage gate when rendering: the model's own setting, or forced on (post-hoc gating of a "
                    "model trained with --no-gate, with its stored kappa/eta) or off.")
 @user_errors
-def eval_cmd(scene, dataset, out_dir, max_width, res, n_views, images, test_every, no_undistort, backend,
+def eval_cmd(scene, dataset, out_dir, max_width, res, protocol, n_views, images, test_every, no_undistort, backend,
              gate_mode) -> None:
     """Evaluate SCENE on DATASET's test views at many resolutions: PSNR/SSIM/time/Gaussians, JSON + markdown +
     plot + side-by-side crops."""
     from ..errors import ProxycodecError
-    from ..evaluate import EXTRA_RESOLUTIONS, MAIN_RESOLUTIONS, evaluate, report_markdown, write_report
+    from ..evaluate import (
+        EXTRA_RESOLUTIONS, MAIN_RESOLUTIONS, MIP_SPLATTING_SCALES, evaluate, report_markdown, write_report,
+    )
     from ..explicit import ExplicitModel
     from ..model import apply_gate_mode
     from ..scenes import load_any
@@ -185,7 +191,10 @@ def eval_cmd(scene, dataset, out_dir, max_width, res, n_views, images, test_ever
     data = _load_data(dataset, max_width, images, test_every, not no_undistort)
     if isinstance(model, ExplicitModel):  # a PLY carries no background: the dataset's, as in training
         model.background = tuple(data.background)
-    resolutions = parse_resolutions(res) if res else list(MAIN_RESOLUTIONS + EXTRA_RESOLUTIONS)
+    if protocol == "mip-splatting" and res:
+        raise ProxycodecError("--res cannot be combined with --protocol mip-splatting (its scales are fixed)")
+    resolutions = (list(MIP_SPLATTING_SCALES) if protocol == "mip-splatting" else
+                   parse_resolutions(res) if res else list(MAIN_RESOLUTIONS + EXTRA_RESOLUTIONS))
     views = list(data.test_indices)
     if n_views is not None:
         if n_views < 1:
@@ -193,7 +202,7 @@ def eval_cmd(scene, dataset, out_dir, max_width, res, n_views, images, test_ever
         views = views[:n_views]
     crop_keys = {(views[0], xi): None for xi in (0.1, 0.25, 0.5, 1.0, 1.5) if xi in resolutions}
     rep = evaluate(model, data, resolutions=resolutions, views=views, backend=backend, scene_name=Path(scene).stem,
-                   keep_images=crop_keys, log=lambda s: click.echo(s, err=True))
+                   keep_images=crop_keys, log=lambda s: click.echo(s, err=True), protocol=protocol)
     rep.summary["fit"] = {k: fit_meta.get(k) for k in ("iterations", "seconds", "stage")} if fit_meta else None
     rep.summary["max_width"] = max_width
     rep.summary["gate"] = {"mode": gate_mode, **gate_used} if gate_used is not None else None

@@ -26,6 +26,8 @@ from ..errors import ProxycodecError
 __all__ = [
     "PosedImages",
     "image_file_size",
+    "decode_image",
+    "multiscale_target",
     "read_image_rgb",
     "resize_image",
     "look_at_bounds",
@@ -57,10 +59,9 @@ def image_file_size(path: str | os.PathLike) -> tuple[int, int]:
         raise ProxycodecError(f"cannot read image header: {e}", path) from None
 
 
-def read_image_rgb(
-    path: str | os.PathLike, background: Sequence[float], expect_size: tuple[int, int] | None = None
-) -> np.ndarray:
-    """Decode an image to float32 RGB [H, W, 3] in [0, 1], compositing any alpha onto ``background``."""
+def decode_image(path: str | os.PathLike, expect_size: tuple[int, int] | None = None) -> np.ndarray:
+    """Decode an image as stored: uint8 [H, W, 3] RGB or [H, W, 4] RGBA (straight alpha), or float32 [H, W, 3] in
+    [0, 1] for 16-bit and 32-bit greyscale (read at full depth)."""
     try:
         with Image.open(path) as im:
             if expect_size is not None and tuple(im.size) != tuple(expect_size):
@@ -78,19 +79,51 @@ def read_image_rgb(
                 mode == "P" and "transparency" in im.info
             )
             im = im.convert("RGBA" if has_alpha else "RGB")
-            arr = np.asarray(im, dtype=np.uint8)
+            return np.asarray(im, dtype=np.uint8)
     except FileNotFoundError:
         raise ProxycodecError("image file not found", path) from None
     except ProxycodecError:
         raise
     except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as e:
         raise ProxycodecError(f"cannot decode image: {e}", path) from None
+
+
+def read_image_rgb(
+    path: str | os.PathLike, background: Sequence[float], expect_size: tuple[int, int] | None = None
+) -> np.ndarray:
+    """Decode an image to float32 RGB [H, W, 3] in [0, 1], compositing any alpha onto ``background``."""
+    arr = decode_image(path, expect_size)
+    if arr.dtype != np.uint8:
+        return arr
     rgb = arr[:, :, :3].astype(np.float32) * np.float32(1 / 255)
     if arr.shape[2] == 4:
         a = arr[:, :, 3:4].astype(np.float32) * np.float32(1 / 255)
         bg = np.asarray(background, dtype=np.float32).reshape(1, 1, 3)
         rgb = rgb * a + bg * (1.0 - a)
     return rgb
+
+
+def multiscale_target(arr: np.ndarray, levels: int, background: Sequence[float]) -> np.ndarray:
+    """The ground truth of Mip-Splatting's multi-scale protocol, in its arithmetic, from a decoded file ``arr``
+    (``decode_image``) -> float32 RGB [H / 2^levels, W / 2^levels, 3].
+
+    Mip-NeRF's ``scripts/convert_blender_data.py`` makes the multi-scale data: the file / 255 in float32, halved
+    ``levels`` times by 2x2 means of the straight RGBA, saved as PNG with ``np.uint8(img * 255)`` (truncation).
+    Mip-Splatting's loader composites it onto the background in float64 and truncates to 8 bits again
+    (``np.array(arr * 255.0, dtype=np.byte)``); the image is then that / 255. Averaging colour and alpha separately
+    before compositing is not box-filtering the composited image (``resize_image``, our own targets) at silhouettes:
+    this is the protocol's ground truth, kept as it is so that figures compare with the field's."""
+    img = arr.astype(np.float32) / 255.0 if arr.dtype == np.uint8 else np.asarray(arr, np.float32)
+    for _ in range(levels):
+        h, w = img.shape[:2]
+        if h % 2 or w % 2:
+            raise ProxycodecError(f"a {w}x{h} image cannot be halved by 2x2 means")
+        img = np.mean(np.reshape(img, [h // 2, 2, w // 2, 2, -1]), (1, 3))
+    norm = np.uint8(img * 255) / 255.0  # the PNG, read back in float64
+    rgb = norm[:, :, :3]
+    if norm.shape[2] == 4:
+        rgb = rgb * norm[:, :, 3:4] + np.asarray(background, np.float64) * (1 - norm[:, :, 3:4])
+    return (np.uint8(rgb * 255.0) / 255.0).astype(np.float32)
 
 
 def resize_image(rgb: np.ndarray, width: int, height: int) -> np.ndarray:
@@ -266,6 +299,21 @@ class PosedImages:
         t = torch.from_numpy(resize_image(rgb, w, h))
         self._cache.put(key, t)
         return t.clone()
+
+    def load_multiscale_target(self, i: int, xi: float) -> torch.Tensor:
+        """Image ``i`` at ``camera.scaled(xi)``'s size as Mip-Splatting's multi-scale protocol builds its ground
+        truth (``multiscale_target``): that size must be the file's size divided by a power of two."""
+        i = int(i)
+        (fw, fh), (w, h) = self.file_sizes[i], self.image_size(i, xi)
+        k = round(math.log2(fw / w)) if w > 0 and fw >= w else -1
+        if k < 0 or (fw, fh) != (w << k, h << k):
+            raise ProxycodecError(f"the multi-scale protocol needs each test size to be the image size / 2^k; "
+                                  f"{fw}x{fh} at {xi:g} of the reference is {w}x{h}", self.cameras[i].image_path)
+        if self.undistorters is not None and self.undistorters[i] is not None:
+            raise ProxycodecError("the multi-scale protocol needs undistorted images (give --no-undistort or an "
+                                  "undistorted dataset)", self.cameras[i].image_path)
+        arr = decode_image(self.cameras[i].image_path, expect_size=self.file_sizes[i])
+        return torch.from_numpy(multiscale_target(arr, k, self.background))
 
     def clear_cache(self) -> None:
         self._cache.clear()

@@ -26,10 +26,15 @@ from .fileio import atomic_write
 from .metrics import psnr, ssim
 from .perceptual import MIN_SIDE, load_lpips, lpips, lpips_status
 
-__all__ = ["EXTRA_RESOLUTIONS", "MAIN_RESOLUTIONS", "EvalReport", "evaluate", "lpips_status", "write_report"]
+__all__ = ["EXTRA_RESOLUTIONS", "MAIN_RESOLUTIONS", "MIP_SPLATTING_SCALES", "PROTOCOLS", "EvalReport", "evaluate", "lpips_status", "write_report"]
 
 MAIN_RESOLUTIONS = tuple(round(0.1 * k, 1) for k in range(1, 11))
 EXTRA_RESOLUTIONS = (0.025, 0.05, 0.075, 1.1, 1.2, 1.3, 1.4, 1.5)
+#: Evaluation protocols: ours (the paper's ten resolutions 10%..100% averaged, targets box-filtered from the
+#: composited image) and Mip-Splatting's multi-scale one (its Table 2: full, 1/2, 1/4, 1/8 of the reference,
+#: ground truth as mip-NeRF's multi-scale Blender data builds it: ``formats.images.multiscale_target``).
+PROTOCOLS = ("ours", "mip-splatting")
+MIP_SPLATTING_SCALES = (1.0, 0.5, 0.25, 0.125)
 
 
 @dataclass
@@ -42,9 +47,11 @@ class EvalReport:
     summary: dict = field(default_factory=dict)
     lpips_note: str = ""
     lpips_available: bool = False
+    protocol: str = "ours"
 
     def to_json(self) -> dict:
-        return {"scene": self.scene, "dataset": self.dataset, "views": self.views, "summary": self.summary,
+        return {"scene": self.scene, "dataset": self.dataset, "protocol": self.protocol, "views": self.views,
+                "summary": self.summary,
                 "per_resolution": self.per_resolution, "rows": self.rows, "lpips": self.lpips_note,
                 "lpips_available": self.lpips_available}
 
@@ -56,26 +63,38 @@ def _mean(xs):
 
 def evaluate(model, data, *, resolutions: Sequence[float] = MAIN_RESOLUTIONS + EXTRA_RESOLUTIONS,
              views: Sequence[int] | None = None, backend: str = "auto", scene_name: str = "",
-             keep_images: dict | None = None, log: Callable[[str], None] | None = None) -> EvalReport:
+             keep_images: dict | None = None, log: Callable[[str], None] | None = None,
+             protocol: str = "ours") -> EvalReport:
     """Render ``model`` (a ``SceneModel`` or an ``explicit.ExplicitModel``) at the dataset's test views (indices
     into ``data.cameras``).
 
     ``keep_images``: when a dict, (view, xi) -> (gt, render) uint8 arrays are stored in it for the views/xis it
     already names as keys (used for the side-by-side crops).
+
+    ``protocol`` (``PROTOCOLS``): "ours" compares with ``data.load_image`` and averages the resolutions among
+    10%..100%; "mip-splatting" renders ``MIP_SPLATTING_SCALES`` (``resolutions`` is ignored), compares with
+    ``data.load_multiscale_target`` and averages the four scales (Mip-Splatting's Table 2).
     """
     from .model import image_to_uint8
 
     log = log or (lambda s: None)
+    if protocol not in PROTOCOLS:
+        raise ProxycodecError(f"unknown evaluation protocol {protocol!r}; choose from {', '.join(PROTOCOLS)}")
+    mip = protocol == "mip-splatting"
+    if mip:
+        resolutions = MIP_SPLATTING_SCALES
+    target = data.load_multiscale_target if mip else data.load_image
     views = list(data.test_indices if views is None else views)
     if not views:
         raise ProxycodecError("the dataset has no test views (give --views)")
     ok, note = lpips_status()
     net = load_lpips() if ok else None
-    rep = EvalReport(scene_name, str(getattr(data, "root", "")), views, lpips_note=note, lpips_available=ok)
+    rep = EvalReport(scene_name, str(getattr(data, "root", "")), views, lpips_note=note, lpips_available=ok,
+                     protocol=protocol)
     for v in views:
         cam = data.cameras[v]
         for xi in resolutions:
-            gt = data.load_image(v, xi)
+            gt = target(v, xi)
             t0 = time.perf_counter()
             r = model.render(cam, xi, backend=backend)
             dt = time.perf_counter() - t0
@@ -95,8 +114,10 @@ def evaluate(model, data, *, resolutions: Sequence[float] = MAIN_RESOLUTIONS + E
              "seconds": _mean(r["seconds"] for r in rs), "gaussians": _mean(r["gaussians"] for r in rs),
              "lpips": _mean(r["lpips"] for r in rs)}
         rep.per_resolution.append(d)
-    main = [d for d in rep.per_resolution if any(abs(d["xi"] - m) < 1e-9 for m in MAIN_RESOLUTIONS)]
+    averaged = MIP_SPLATTING_SCALES if mip else MAIN_RESOLUTIONS
+    main = [d for d in rep.per_resolution if any(abs(d["xi"] - m) < 1e-9 for m in averaged)]
     rep.summary = {
+        "protocol": protocol,
         "views": len(views),
         "resolutions_in_average": [d["xi"] for d in main],
         "psnr_avg": _mean(d["psnr"] for d in main),
@@ -106,6 +127,11 @@ def evaluate(model, data, *, resolutions: Sequence[float] = MAIN_RESOLUTIONS + E
         "psnr_100": next((d["psnr"] for d in rep.per_resolution if abs(d["xi"] - 1.0) < 1e-9), None),
         "anchors": None if model.scene.num_anchors is None else int(model.scene.num_anchors),
     }
+    if mip:  # the figure Mip-Splatting's comparison turns on: what is lost from full size to 1/8
+        p8 = next(d["psnr"] for d in rep.per_resolution if abs(d["xi"] - 0.125) < 1e-9)
+        rep.summary["psnr_125"] = p8
+        rep.summary["drop_full_to_eighth"] = None if rep.summary["psnr_100"] is None or p8 is None \
+            else rep.summary["psnr_100"] - p8
     if model.scene.num_anchors is None:  # an explicit 3DGS scene (``explicit.ExplicitModel``): no anchors
         rep.summary["gaussians_stored"] = int(model.scene.num_gaussians)
     return rep
@@ -124,10 +150,15 @@ def report_markdown(rep: EvalReport) -> str:
          + (f"{s['anchors']} anchors." if s.get("anchors") is not None
             else f"{s.get('gaussians_stored')} explicit Gaussians (plain 3DGS).")),
         "",
-        (f"**Average over {len(s['resolutions_in_average'])} resolutions 10%..100%: "
+        (f"**Average over {len(s['resolutions_in_average'])} resolutions "
+         + ("full, 1/2, 1/4, 1/8 (Mip-Splatting's multi-scale protocol)" if rep.protocol == "mip-splatting"
+            else "10%..100%") + ": "
          f"PSNR {_fmt(s['psnr_avg'], '.3f')} dB, SSIM {_fmt(s['ssim_avg'], '.4f')}"
          + (f", LPIPS {_fmt(s.get('lpips_avg'), '.4f')}" if rep.lpips_available else "") + "** "
-         f"(10%: {_fmt(s['psnr_10'], '.3f')} dB, 100%: {_fmt(s['psnr_100'], '.3f')} dB)."),
+         + (f"(full: {_fmt(s['psnr_100'], '.3f')} dB, 1/8: {_fmt(s.get('psnr_125'), '.3f')} dB, drop "
+            f"{_fmt(s.get('drop_full_to_eighth'), '.2f')} dB; ground truth as mip-NeRF's multi-scale data builds it)."
+            if rep.protocol == "mip-splatting" else
+            f"(10%: {_fmt(s['psnr_10'], '.3f')} dB, 100%: {_fmt(s['psnr_100'], '.3f')} dB).")),
         "",
         (f"{rep.lpips_note}"
          + (f"; n/a under {MIN_SIDE} px a side (AlexNet's first convolution and max-pools)" if rep.lpips_available

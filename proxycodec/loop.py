@@ -175,11 +175,12 @@ class TrainingRun:
             self.view_stack = [int(i) for i in self.rng.permutation(self.data.train_indices)]
         return self.view_stack.pop()
 
-    def sample_view(self, xi_range: tuple[float, float] | None) -> tuple[int, float, torch.Tensor]:
-        """-> (view, xi, its anti-aliased target at ``camera.scaled(xi)``): the next view, then xi ~ U[xi_range]
-        (1 when ``xi_range`` is None), both from ``self.rng``."""
+    def sample_view(self, xi_range: tuple[float, float] | None, sampling: str = "uniform"
+                    ) -> tuple[int, float, torch.Tensor]:
+        """-> (view, xi, its anti-aliased target at ``camera.scaled(xi)``): the next view, then xi drawn from
+        ``xi_range`` as ``sampling`` says (``draw_xi``; 1 when ``xi_range`` is None), both from ``self.rng``."""
         i = self.next_view()
-        xi = 1.0 if xi_range is None else float(xi_range[0] + (xi_range[1] - xi_range[0]) * self.rng.random())
+        xi = 1.0 if xi_range is None else draw_xi(xi_range, sampling, self.rng.random())
         return i, xi, self.images.get(i, xi)
 
     def optimise(self, loss: torch.Tensor, render, width: int, height: int, lrs: dict[str, float]) -> None:
@@ -207,6 +208,26 @@ class TrainingRun:
         with torch.no_grad():
             mse = float(((img.detach().clamp(0, 1) - gt) ** 2).mean())
         return {"loss": float(loss.detach()), "psnr": mse_to_psnr(max(mse, 1e-10))}
+
+
+# ================================================================================================ resolution sampling
+XI_SAMPLINGS = ("uniform", "pixels", "log")
+
+
+def check_xi_sampling(sampling: str) -> None:
+    if sampling not in XI_SAMPLINGS:
+        raise ProxycodecError(f"unknown resolution sampling {sampling!r}; choose from {', '.join(XI_SAMPLINGS)}")
+
+
+def draw_xi(xi_range: tuple[float, float], sampling: str, u: float) -> float:
+    """xi in [lo, hi] from one uniform draw ``u`` in [0, 1): uniform in xi (the paper's), uniform in pixel count
+    (xi^2, so density ~ xi: more iterations near full resolution) or uniform in log xi (more near the bottom)."""
+    lo, hi = float(xi_range[0]), float(xi_range[1])
+    if sampling == "pixels":
+        return math.sqrt(lo * lo + (hi * hi - lo * lo) * u)
+    if sampling == "log":
+        return lo * (hi / lo) ** u
+    return lo + (hi - lo) * u
 
 
 # ================================================================================================ the loop

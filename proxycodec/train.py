@@ -37,7 +37,7 @@ from .decoder import DecoderConfig, GaussianDecoder, visible_anchors
 from .errors import ProxycodecError
 from .formats.container import read_container, write_container
 from .loop import (
-    ProgressFn, TargetImages, TrainingRun, check_run_length, fmt_time, initial_points, knn_scale, photometric_loss,
+    ProgressFn, TargetImages, TrainingRun, check_run_length, check_xi_sampling, fmt_time, initial_points, knn_scale, photometric_loss,
     run_until_done,
 )
 from .model import SceneModel, render_scene, weights_path_for
@@ -81,6 +81,12 @@ class FitConfig:
     xi_min: float = 0.1
     xi_max: float = 1.0
     fixed_res: bool = False  # ablation: xi = 1 always (plain single-resolution training)
+    # how xi is drawn in [xi_min, xi_max] (loop.XI_SAMPLINGS): "uniform" in xi (the paper's), "pixels" (uniform in
+    # pixel count, density ~ xi), "log" (uniform in log xi)
+    xi_sampling: str = "uniform"
+    xi_full_share: float = 0.0  # this fraction of stage-1 and stage-2 iterations renders at xi_max instead
+    # densification statistics only from iterations with xi >= this (0: all; Scaffold-GS sees 100% only)
+    stats_min_xi: float = 0.0
     # model
     embedding: str = "film"  # "film" | "additive" | "none"
     gate: bool = True  # pixel coverage gate on during training and rendering
@@ -88,6 +94,7 @@ class FitConfig:
     gate_eta: float = 0.25
     feat_dim: int = 32
     n_offsets: int = 10
+    film_hidden: int = 64  # width of the FiLM MLP's hidden layer
     proxies: bool = True  # stage 2 (proxy anchors + residual predictor); False: Scaffold-GS only
     # initialisation
     voxel_size: float = 0.0  # <= 0: auto = extent / voxel_divisions
@@ -162,7 +169,11 @@ class FitConfig:
             object.__setattr__(self, "update_until", self.stage2_start)
         if not (0.025 <= self.xi_min <= self.xi_max <= 2.0):
             raise ProxycodecError(f"resolution range [{self.xi_min}, {self.xi_max}] must lie in [0.025, 2]")
-        DecoderConfig(embedding=self.embedding)  # validates the name
+        DecoderConfig(embedding=self.embedding, film_hidden=self.film_hidden)  # validates the name and width
+        check_xi_sampling(self.xi_sampling)
+        if not (0.0 <= self.xi_full_share <= 1.0) or not (0.0 <= self.stats_min_xi <= self.xi_max):
+            raise ProxycodecError(f"xi_full_share must be in [0, 1] and stats_min_xi in [0, xi_max], got "
+                                  f"{self.xi_full_share}, {self.stats_min_xi}")
         if not (0 < self.proxy_ratio <= 1) or not (0 < self.leaf_sample <= 1):
             raise ProxycodecError("proxy ratio and leaf sample fraction must be in (0, 1]")
         PredictorConfig(hidden=self.predictor_hidden, n_blocks=self.predictor_blocks,
@@ -210,6 +221,7 @@ class FitConfig:
 
     def decoder_config(self, center, radius: float) -> DecoderConfig:
         return DecoderConfig(feat_dim=self.feat_dim, n_offsets=self.n_offsets, embedding=self.embedding,
+                             film_hidden=self.film_hidden,
                              scene_center=tuple(float(c) for c in center), scene_radius=float(radius),
                              film_xi_range=(1.0, 1.0) if self.fixed_res else (self.xi_min, self.xi_max),
                              gate=GateConfig(self.gate, self.gate_kappa, self.gate_eta))
@@ -387,7 +399,11 @@ class Trainer(TrainingRun):
         p = self.progress()
         if c.proxies and self.stage == 1 and p >= c.stage2_start:
             self.enter_stage2()
-        i, xi, gt = self.sample_view(None if c.fixed_res else (c.xi_min, c.xi_max))
+        full = c.fixed_res or (c.xi_full_share > 0 and self.rng.random() < c.xi_full_share)
+        i, xi, gt = self.sample_view(None if full else (c.xi_min, c.xi_max), c.xi_sampling)
+        if full and c.xi_max != 1.0:
+            xi, gt = c.xi_max, self.images.get(i, c.xi_max)
+        self.step_xi = xi
         cam = self.data.cameras[i]
         lam = self.lambda_recon(p) if self.stage >= 2 else 0.0
         feats, offs, l_recon = self.leaf_tables(cam.scaled(xi), with_recon=lam != 0.0)
@@ -436,7 +452,7 @@ class Trainer(TrainingRun):
         return feats, offs, loss
 
     def observe(self, r, width: int, height: int) -> None:
-        if self.stage < 2 and self.strategy.collecting(self.progress()):
+        if self.stage < 2 and self.strategy.collecting(self.progress()) and self.step_xi >= self.cfg.stats_min_xi:
             self.strategy.observe(r, width, height)
 
     def after_step(self) -> None:
