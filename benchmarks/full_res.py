@@ -5,11 +5,11 @@ At equal iterations the default fit (FiLM + gate + random resolution + proxies) 
 fixed number of iterations with ONE setting changed from the defaults, evaluated uncompressed on the same test views
 at the ten resolutions 10%..100%: PSNR at 100% (what the issue is about), the average (what must not suffer), the
 fit's time (what the setting costs). Plain Scaffold-GS is the target at 100%; a second seed of the defaults is the
-noise floor. ``--confirm`` adds the rows named with ``--confirm-rows`` at the long setting (400 px, 10,220
-iterations) beside plain Scaffold-GS of the same length.
+noise floor. The winner is confirmed at 400 px / 10,220 iterations with ``proxycodec fit`` and ``proxycodec eval``
+on all 25 test views (benchmarks/README.md gives the commands).
 
-    python benchmarks/full_res.py                     # the screening (200 px, 3000 iterations)
-    python benchmarks/full_res.py --confirm "xi uniform in pixels"
+    python benchmarks/full_res.py                                   # every screening row (200 px, 3000 iterations)
+    python benchmarks/full_res.py --rows 0 --extra 'NAME={"film_hidden": 128}'   # the defaults and one more row
 
 Resumable (``proxycodec.bench.Runner``): a re-run skips the steps already recorded with the same arguments.
 Outputs in ``--out`` (default ``benchmarks/results/full_res``): ``results.json`` (machine, versions, every step and
@@ -27,7 +27,6 @@ REPO = Path(__file__).resolve().parent.parent
 SHARED = REPO.parent / "shared" / "data"
 LEGO = SHARED / "nerf_synthetic" / "lego"
 SCREEN = {"max_width": 200, "iters": 3000}
-CONFIRM = {"max_width": 400, "iters": 10220}
 VIEWS = 8
 SCAFFOLD = {"proxies": False, "gate": False, "embedding": "none", "fixed_res": True}
 
@@ -55,10 +54,6 @@ def main(argv=None) -> int:
     ap.add_argument("--extra", action="append", default=[], metavar="NAME=JSON",
                     help="an extra screening row: its name and FitConfig overrides as JSON (repeatable)")
     ap.add_argument("--seeds", default="0", help="comma-separated seeds for every screening row [default: 0]")
-    ap.add_argument("--confirm", action="append", default=[], metavar="NAME=JSON",
-                    help="a row at the long setting (400 px, 10,220 iterations); 'defaults={}' and plain "
-                         "Scaffold-GS are always among them when any is given")
-    ap.add_argument("--no-screen", action="store_true", help="skip the screening rows (with --confirm)")
     args = ap.parse_args(argv)
     if not LEGO.is_dir():
         ap.error(f"lego not found at {LEGO} (see ../shared/data/README.md)")
@@ -69,31 +64,36 @@ def main(argv=None) -> int:
     from proxycodec.bench.runner import safe_name
     from proxycodec.threads import set_threads
 
-    set_threads()
+    set_threads()  # the step workers inherit the count
     rows = [r for k, r in enumerate(ROWS) if args.rows is None or str(k) in args.rows.split(",")]
     rows += [(n, json.loads(j), "model") for n, j in (e.split("=", 1) for e in args.extra)]
     seeds = [int(s) for s in args.seeds.split(",")]
-    confirm = [(n, json.loads(j), "model") for n, j in (e.split("=", 1) for e in args.confirm)]
-    if confirm:
-        names = {n for n, _, _ in confirm}
-        confirm = ([("defaults", {}, "model")] if "defaults" not in names else []) + confirm
-        confirm.append((ROWS[2][0], SCAFFOLD, "model"))
     meta = {"kind": "proxycodec.full_res", "machine": bench.machine_info(), "versions": bench.versions(),
-            "dataset": str(LEGO), "views": VIEWS, "screen": SCREEN, "confirm": CONFIRM}
+            "dataset": str(LEGO), "views": VIEWS, "screen": SCREEN}
+    old_rows = []
+    if (Path(args.out) / "results.json").exists():  # the rows of earlier invocations (the Runner keeps its steps)
+        try:
+            old_rows = json.loads((Path(args.out) / "results.json").read_text()).get("rows", [])
+        except ValueError:
+            pass
     runner = Runner(args.out, meta)
-    results = runner.state.get("rows", [])
-    done = {(r["setting"], r["name"], r["seed"]) for r in results}
+    results = old_rows
 
-    def run(setting: dict, label: str, name: str, over: dict, gate: str, seed: int) -> None:
+    def fit_step(setting: dict, over: dict, seed: int):
         w, it = setting["max_width"], setting["iters"]
         seed = over.get("seed", seed)
         cfg = {"iters": it, "time_budget": None, "seed": seed, "checkpoint_every": 120.0, "log_every": 30.0,
                **{k: v for k, v in over.items() if k != "seed"}}
         tag = "_".join(f"{k}={v}" for k, v in sorted(cfg.items()) if k not in ("checkpoint_every", "log_every"))
         ply = runner.work / f"{w}px_{safe_name(tag)}.ply"
-        fit = runner.step(f"fit {w}px {tag}", "fit", {"dataset": str(LEGO), "max_width": w, "test_every": 8,
-                                                      "out": str(ply), "config": cfg}, outputs=[ply],
-                          timeout=6 * 3600)
+        return tag, ply, runner.step(f"fit {w}px {tag}", "fit", {"dataset": str(LEGO), "max_width": w,
+                                                                 "test_every": 8, "out": str(ply), "config": cfg},
+                                     outputs=[ply], timeout=6 * 3600)
+
+    def run(setting: dict, label: str, name: str, over: dict, gate: str, seed: int) -> None:
+        w = setting["max_width"]
+        seed = over.get("seed", seed)
+        tag, ply, fit = fit_step(setting, over, seed)
         ev = eval_step(runner, f"eval {w}px {tag} gate={gate}", ply, EvalSpec(str(LEGO), w, VIEWS), gate=gate)
         f, e = fit.get("result", {}), ev.get("result", {})
         row = {"setting": label, "name": name, "seed": seed, "overrides": over, "gate": gate,
@@ -106,12 +106,9 @@ def main(argv=None) -> int:
         runner.save({"rows": results})
         write_tables(runner, results)
 
-    if not args.no_screen:
-        for seed in seeds:
-            for name, over, gate in rows:
-                run(SCREEN, "screen", name, over, gate, seed)
-    for name, over, gate in confirm:
-        run(CONFIRM, "confirm", name, over, gate, 0)
+    for seed in seeds:
+        for name, over, gate in rows:
+            run(SCREEN, "screen", name, over, gate, seed)
     write_tables(runner, results)
     runner.finish()
     return 0
@@ -121,11 +118,11 @@ def write_tables(runner, results: list[dict]) -> None:
     f = lambda x, s=".3f": "n/a" if x is None else format(x, s)  # noqa: E731
     out = ["# The 100% gap (issue #18): one setting changed per fit", ""]
     plot_rows = []
-    for label, setting in (("screen", SCREEN), ("confirm", CONFIRM)):
+    for label, setting in (("screen", SCREEN),):
         rs = [r for r in results if r["setting"] == label]
         if not rs:
             continue
-        ref = {r["seed"]: r for r in rs if r["name"] == "defaults"}
+        ref = {r["seed"]: r for r in rs if r["gate"] == "model" and not set(r["overrides"]) - {"seed"}}
         sc = {r["seed"]: r for r in rs if r["name"].startswith("plain Scaffold-GS")}
         out += [f"## lego, {setting['max_width']} px reference, {setting['iters']} iterations, first {VIEWS} test "
                 "views", "", "| row | seed | PSNR 100% | vs defaults | vs Scaffold-GS | avg 10..100% | vs defaults | "
@@ -149,12 +146,15 @@ def write_tables(runner, results: list[dict]) -> None:
         import matplotlib.pyplot as plt
     except ImportError:  # pragma: no cover - matplotlib ships with scikit-image's extras only
         return
-    fig, axes = plt.subplots(1, 2, figsize=(13, 5))
-    for ax, label in zip(axes, ("screen", "confirm")):
-        for name, r in plot_rows:
-            if name.startswith(label) and r["per_resolution"]:
-                xs, ys = zip(*r["per_resolution"])
-                ax.plot(xs, ys, marker="o", ms=3, label=name.split(": ", 1)[1])
+    fig, axes = plt.subplots(1, 1, figsize=(8, 5), squeeze=False)
+    for ax, label in zip(axes[0], ("screen",)):
+        mine = [(name, r) for name, r in plot_rows if name.startswith(label) and r["per_resolution"]]
+        colors = plt.get_cmap("tab20")
+        for k, (name, r) in enumerate(mine):
+            xs, ys = zip(*r["per_resolution"])
+            ax.plot(xs, ys, marker="o", ms=3, color=colors(k % 20), ls=("-", "--", ":")[k // 7 % 3],
+                    label=name.split(": ", 1)[1])
+        ax.set_ylim(bottom=18.0)  # a diverged row (FiLM hidden 256: ~9 dB) would flatten the rest; see the table
         ax.set_title(f"lego, {label} setting")
         ax.set_xlabel("resolution ratio xi")
         ax.set_ylabel("PSNR (dB)")

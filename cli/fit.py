@@ -45,6 +45,14 @@ _no_undistort_option = click.option(
 @fit_option("--embedding", type=click.Choice(["film", "additive", "none"]), show_default=True,
             help="Resolution embedding of the anchor features.")
 @click.option("--fixed-res", is_flag=True, help="Ablation: train at 100% only (no random resolution).")
+@fit_option("--xi-sampling", type=click.Choice(["uniform", "pixels", "log"]), show_default=True,
+            help="How each iteration's resolution is drawn in [0.1, 1]: uniform in xi (the paper's), in pixel count "
+                 "or in log xi.")
+@fit_option("--xi-full-share", type=click.FloatRange(0.0, 1.0), show_default=True,
+            help="Share of iterations rendered at 100% instead of a drawn resolution (SPEC.md 5: the 100% gap).")
+@fit_option("--film-hidden", type=int, show_default=True, help="Hidden width of the FiLM resolution embedding's MLP.")
+@fit_option("--stats-min-xi", type=click.FloatRange(0.0, 1.0), show_default=True,
+            help="Ablation: densification statistics only from iterations at this resolution ratio or above.")
 @click.option("--no-proxies", is_flag=True, help="Ablation: Scaffold-GS only (no proxy anchors / predictor).")
 @fit_option("--proxy-ratio", type=float, show_default=True, help="Stage 2: rho, share of proxies per cell.")
 @fit_option("--proxy-selection", type=click.Choice(["random", "spread"]), show_default=True,
@@ -94,7 +102,8 @@ _no_undistort_option = click.option(
 @explicit_option("--sh-degree", type=click.IntRange(0, 3), show_default=True,
                  help="With --explicit: spherical-harmonics degree of the Gaussians' colours.")
 @user_errors
-def fit(dataset, out, iters, time_budget, max_width, seed, no_gate, embedding, fixed_res, no_proxies, proxy_ratio,
+def fit(dataset, out, iters, time_budget, max_width, seed, no_gate, embedding, fixed_res, xi_sampling, xi_full_share,
+        film_hidden, stats_min_xi, no_proxies, proxy_ratio,
         proxy_selection, predictor_hidden, predictor_blocks, predictor_warmup, predictor_context, predict_offsets, stage2_start, recon_loss,
         lambda_recon, predictor_kind, gate_kappa, gate_eta, voxel_size, init_points, images, test_every,
         no_undistort, resume, checkpoint_every, keep_checkpoint, backend, explicit, sh_degree) -> None:
@@ -125,7 +134,8 @@ def fit(dataset, out, iters, time_budget, max_width, seed, no_gate, embedding, f
                     gate_kappa=gate_kappa, gate_eta=gate_eta, proxy_ratio=proxy_ratio, proxy_selection=proxy_selection,
                     predictor_hidden=predictor_hidden, predictor_blocks=predictor_blocks,
                     predictor_warmup=predictor_warmup, predictor_context=predictor_context,
-                    predict_offsets=predict_offsets, stage2_start=stage2_start, **run)
+                    predict_offsets=predict_offsets, stage2_start=stage2_start, xi_sampling=xi_sampling,
+                    xi_full_share=xi_full_share, film_hidden=film_hidden, stats_min_xi=stats_min_xi, **run)
     data = _load_data(dataset, max_width, images, test_every, not no_undistort)
     res = run_fit(data, out, cfg, dataset_root=str(Path(dataset).resolve()), resume=resume,
                   keep_checkpoint=keep_checkpoint)

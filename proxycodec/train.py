@@ -399,9 +399,10 @@ class Trainer(TrainingRun):
         p = self.progress()
         if c.proxies and self.stage == 1 and p >= c.stage2_start:
             self.enter_stage2()
-        full = c.fixed_res or (c.xi_full_share > 0 and self.rng.random() < c.xi_full_share)
-        i, xi, gt = self.sample_view(None if full else (c.xi_min, c.xi_max), c.xi_sampling)
-        if full and c.xi_max != 1.0:
+        # the share of iterations at the top of the range (drawn only when there is one: the stream is unchanged)
+        top = not c.fixed_res and c.xi_full_share > 0 and self.rng.random() < c.xi_full_share
+        i, xi, gt = self.sample_view(None if c.fixed_res or top else (c.xi_min, c.xi_max), c.xi_sampling)
+        if top and c.xi_max != 1.0:
             xi, gt = c.xi_max, self.images.get(i, c.xi_max)
         self.step_xi = xi
         cam = self.data.cameras[i]

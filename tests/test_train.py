@@ -340,6 +340,41 @@ class TestFit:
         assert m.decoder.config.embedding == "none" and not m.decoder.config.gate.enabled
         assert load_predictor(out.with_name("plain.weights.pxc")) == (None, None)
 
+    def test_resolution_sampling_laws(self):
+        from proxycodec.loop import draw_xi
+        from proxycodec.train import FitConfig
+
+        u = (np.arange(20000) + 0.5) / 20000
+        xs = {s: np.array([draw_xi((0.1, 1.0), s, v) for v in u]) for s in ("uniform", "pixels", "log")}
+        assert xs["uniform"].mean() == pytest.approx(0.55, abs=1e-4)
+        assert (xs["pixels"] ** 2).mean() == pytest.approx((0.01 + 1.0) / 2, abs=1e-4)  # uniform in pixel count
+        assert np.median(xs["log"]) == pytest.approx(math.sqrt(0.1), abs=1e-3)  # uniform in log xi
+        assert all(x.min() >= 0.1 and x.max() <= 1.0 for x in xs.values())
+        assert draw_xi((0.1, 1.0), "uniform", 0.37) == 0.1 + 0.9 * 0.37  # the paper's formula, bit for bit
+        with pytest.raises(ProxycodecError, match="resolution sampling"):
+            FitConfig(xi_sampling="cosine")
+        with pytest.raises(ProxycodecError, match="xi_full_share"):
+            FitConfig(xi_full_share=1.5)
+
+    def test_full_share_and_high_res_statistics(self, data):
+        from proxycodec.train import Trainer
+
+        def run(**kw):
+            tr = Trainer(data, small_config(iters=200, proxies=False, **kw), "tiny")
+            calls = []
+            observe = tr.strategy.observe
+            tr.strategy.observe = lambda r, w, h: (calls.append(w), observe(r, w, h))
+            xis = [tr.train_step()["xi"] for _ in range(60)]
+            return np.array(xis), calls
+
+        base, _ = run()
+        share, _ = run(xi_full_share=0.5)
+        assert (base == 1.0).mean() == 0.0 and 0.3 < (share == 1.0).mean() < 0.7
+        assert share[share < 1.0].min() >= 0.1
+        _, all_calls = run()
+        hi, hi_calls = run(stats_min_xi=0.6)
+        assert min(hi_calls) >= round(0.6 * SIZE) and len(hi_calls) < len(all_calls)
+
     def test_growing_and_pruning(self, data):
         from proxycodec.train import Trainer
 
