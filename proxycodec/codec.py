@@ -310,7 +310,7 @@ def _distill(model: SceneModel, fitted: tuple, cfg: EncodeConfig, say: Progress)
         proxy_cell=float(cfg.cell_size) if cfg.cell_size else default_cell_size(pos, voxel, cfg.cell_target),
         predictor_hidden=cfg.predictor_hidden, predictor_blocks=cfg.predictor_blocks,
         predictor_context=cfg.predictor_context, predict_offsets=bool(cfg.predict_offsets),
-        lr_warmup=cfg.distill_lr_warmup)
+        lr_warmup=cfg.distill_lr_warmup, xi_full_share=0.0)  # as distillation was measured (SPEC.md section 4)
     views = None
     if cfg.images is not None:
         from .formats.datasets import load_dataset

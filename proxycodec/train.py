@@ -84,7 +84,10 @@ class FitConfig:
     # how xi is drawn in [xi_min, xi_max] (loop.XI_SAMPLINGS): "uniform" in xi (the paper's), "pixels" (uniform in
     # pixel count, density ~ xi), "log" (uniform in log xi)
     xi_sampling: str = "uniform"
-    xi_full_share: float = 0.0  # this fraction of stage-1 and stage-2 iterations renders at xi_max instead
+    # [D] this fraction of the iterations renders at xi_max instead of a drawn resolution: with xi uniform alone,
+    # 100% was where the model was weakest (0.8 dB below plain Scaffold-GS on lego at 400 px); 0.25 puts it above,
+    # and the average over 10%..100% rises too (SPEC.md section 5, benchmarks/results/full_res)
+    xi_full_share: float = 0.25
     # densification statistics only from iterations with xi >= this (0: all; Scaffold-GS sees 100% only)
     stats_min_xi: float = 0.0
     # model
@@ -145,11 +148,13 @@ class FitConfig:
     leaf_sample: float = 0.2
     proxy_ratio: float = 0.3
     proxy_cell: float = 0.0  # <= 0: proxy.default_cell_size (~10 anchors per occupied cell)
-    proxy_selection: str = "random"  # "random" (the paper's) | "spread" (greedy k-median per cell; proxy.py)
+    # [D] "spread" (greedy k-median per cell; proxy.py) | "random" (the paper's): spread + context 4 halve what the
+    # proxies cost (SPEC.md section 5)
+    proxy_selection: str = "spread"
     predictor_hidden: int = 64
     predictor_blocks: int = 2
     predictor_warmup: int = 300  # L_recon-only predictor iterations at the stage switch (no rendering)
-    predictor_context: int = 1  # proxies the residual predictor sees per leaf (1: the paper's nearest proxy)
+    predictor_context: int = 4  # proxies the residual predictor sees per leaf (1: the paper's nearest proxy)
     # The predictor is born at the stage switch: its learning rate decays over stage 2 (lr_predictor[0] at the
     # switch). False: over the whole run, as the other groups (a predictor born at p = 0.5 then starts at 1/10).
     predictor_lr_stage2: bool = True

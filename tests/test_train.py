@@ -177,9 +177,9 @@ class TestFit:
         assert pred is not None and mask.dtype == bool and 0 < mask.sum() < len(mask)
         m = SceneModel.load(out)
         assert m.scene.num_anchors == len(mask)
-        from proxycodec.proxy import nearest_proxy
+        from proxycodec.proxy import nearest_proxies
 
-        near = torch.from_numpy(nearest_proxy(m.scene.positions, mask))
+        near = torch.from_numpy(nearest_proxies(m.scene.positions, mask, pred.config.context))
         leaves = torch.from_numpy(~mask).nonzero().squeeze(1)
         with torch.no_grad():
             f, _ = pred.predict(m.scene.positions, m.scene.features, near, leaves)
@@ -258,7 +258,7 @@ class TestFit:
         resumed run ends where an uninterrupted one does, and encode stores proxy offsets only."""
         from proxycodec.codec import EncodeConfig, decode, encode
         from proxycodec.model import SceneModel, weights_path_for
-        from proxycodec.proxy import nearest_proxy
+        from proxycodec.proxy import nearest_proxies
         from proxycodec.proxy import load_fitted_predictor as load_predictor
 
         cfg = small_config(iters=24, predict_offsets=True)
@@ -268,7 +268,7 @@ class TestFit:
         assert pred.config.predict_offsets
         m = SceneModel.load(out)
         s = m.scene
-        near = torch.from_numpy(nearest_proxy(s.positions, mask))
+        near = torch.from_numpy(nearest_proxies(s.positions, mask, pred.config.context))
         leaves = torch.from_numpy(~mask).nonzero().squeeze(1)
         with torch.no_grad():
             f, o = pred.predict(s.positions, s.features, near, leaves, s.offsets)
@@ -367,7 +367,7 @@ class TestFit:
             xis = [tr.train_step()["xi"] for _ in range(60)]
             return np.array(xis), calls
 
-        base, _ = run()
+        base, _ = run(xi_full_share=0.0)
         share, _ = run(xi_full_share=0.5)
         assert (base == 1.0).mean() == 0.0 and 0.3 < (share == 1.0).mean() < 0.7
         assert share[share < 1.0].min() >= 0.1
