@@ -26,7 +26,8 @@ from .fileio import atomic_write
 from .metrics import psnr, ssim
 from .perceptual import MIN_SIDE, load_lpips, lpips, lpips_status
 
-__all__ = ["EXTRA_RESOLUTIONS", "MAIN_RESOLUTIONS", "MIP_SPLATTING_SCALES", "PROTOCOLS", "EvalReport", "evaluate", "lpips_status", "write_report"]
+__all__ = ["EXTRA_RESOLUTIONS", "MAIN_RESOLUTIONS", "MIP_SPLATTING_SCALES", "PROTOCOLS", "EvalReport", "evaluate",
+           "lpips_status", "write_report"]
 
 MAIN_RESOLUTIONS = tuple(round(0.1 * k, 1) for k in range(1, 11))
 EXTRA_RESOLUTIONS = (0.025, 0.05, 0.075, 1.1, 1.2, 1.3, 1.4, 1.5)

@@ -37,8 +37,8 @@ from .decoder import DecoderConfig, GaussianDecoder, visible_anchors
 from .errors import ProxycodecError
 from .formats.container import read_container, write_container
 from .loop import (
-    ProgressFn, TargetImages, TrainingRun, check_run_length, check_xi_sampling, fmt_time, initial_points, knn_scale, photometric_loss,
-    run_until_done,
+    ProgressFn, TargetImages, TrainingRun, check_run_length, check_xi_sampling, fmt_time, initial_points, knn_scale,
+    photometric_loss, run_until_done,
 )
 from .model import SceneModel, render_scene, weights_path_for
 from .netconfig import PredictorConfig
