@@ -23,7 +23,6 @@ Outputs in ``--out`` (default ``benchmarks/results/convert``): ``results.json`` 
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -157,7 +156,7 @@ def _bytes(rec: dict, label: str):
 def _report(run, rows: dict) -> str:
     meta = run.state["meta"]
     m = meta["machine"]
-    lines = [f"# 3DGS PLY -> proxycodec (benchmarks/convert.py)", "",
+    lines = ["# 3DGS PLY -> proxycodec (benchmarks/convert.py)", "",
              f"Machine: {m.get('cpu_model')}, {m.get('cpu_count')} cores, {m.get('memory_gb')} GB; torch {meta['versions'].get('torch')}; seed "
              f"{meta['seed']}; generated {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}.", ""]
     for name, rec in rows.items():

@@ -333,7 +333,7 @@ class ExplicitTrainer(TrainingRun):
         """sample view and resolution -> render -> loss -> backward -> step -> densify (``TrainingRun.optimise``)."""
         c = self.cfg
         p = self.progress()
-        i, xi, gt = self.sample_view((c.xi_min, 1.0) if c.random_res else None)
+        i, xi, gt = self.sample_view((c.xi_min, 1.0) if c.random_res else 1.0)
         cam = self.data.cameras[i].scaled(xi)
         r = self.render(cam, self.active_sh_degree(p))
         loss = photometric_loss(r.image, gt, c.lambda_dssim)

@@ -175,12 +175,13 @@ class TrainingRun:
             self.view_stack = [int(i) for i in self.rng.permutation(self.data.train_indices)]
         return self.view_stack.pop()
 
-    def sample_view(self, xi_range: tuple[float, float] | None, sampling: str = "uniform"
+    def sample_view(self, xi_range: tuple[float, float] | float, sampling: str = "uniform"
                     ) -> tuple[int, float, torch.Tensor]:
         """-> (view, xi, its anti-aliased target at ``camera.scaled(xi)``): the next view, then xi drawn from
-        ``xi_range`` as ``sampling`` says (``draw_xi``; 1 when ``xi_range`` is None), both from ``self.rng``."""
+        ``xi_range`` as ``sampling`` says (``draw_xi``), both from ``self.rng``; a number instead of a range is
+        the xi itself (nothing drawn)."""
         i = self.next_view()
-        xi = 1.0 if xi_range is None else draw_xi(xi_range, sampling, self.rng.random())
+        xi = float(xi_range) if isinstance(xi_range, (int, float)) else draw_xi(xi_range, sampling, self.rng.random())
         return i, xi, self.images.get(i, xi)
 
     def optimise(self, loss: torch.Tensor, render, width: int, height: int, lrs: dict[str, float]) -> None:

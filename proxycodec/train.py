@@ -406,10 +406,9 @@ class Trainer(TrainingRun):
             self.enter_stage2()
         # the share of iterations at the top of the range (drawn only when there is one: the stream is unchanged)
         top = not c.fixed_res and c.xi_full_share > 0 and self.rng.random() < c.xi_full_share
-        i, xi, gt = self.sample_view(None if c.fixed_res or top else (c.xi_min, c.xi_max), c.xi_sampling)
-        if top and c.xi_max != 1.0:
-            xi, gt = c.xi_max, self.images.get(i, c.xi_max)
-        self.step_xi = xi
+        i, xi, gt = self.sample_view(1.0 if c.fixed_res else c.xi_max if top else (c.xi_min, c.xi_max),
+                                     c.xi_sampling)
+        self.step_xi = xi  # observe() reads it: densification statistics from xi >= stats_min_xi only
         cam = self.data.cameras[i]
         lam = self.lambda_recon(p) if self.stage >= 2 else 0.0
         feats, offs, l_recon = self.leaf_tables(cam.scaled(xi), with_recon=lam != 0.0)
