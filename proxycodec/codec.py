@@ -40,7 +40,8 @@ from .proxy import (
 from .scene import AnchorScene
 # The scene format (both halves) is torch-free; proxycodec.lite reads containers through it too.
 from .sections import (
-    FLOAT_BITS, MAX_ANCHORS, OFFSETS, PREDICT_CHUNK, SCENE_FORMAT, SCENE_KIND, QuantizedAnchors, encode_positions,
+    FLOAT_BITS, MAX_ANCHORS, OFFSETS, PREDICT_CHUNK, PROXY_FEATURES, SCALINGS, SCENE_FORMAT, SCENE_FORMAT_ENTROPY,
+    SCENE_KIND, QuantizedAnchors, encode_positions,
     guarded, pack_weights, quantize_anchors, read_scene_container, scene_extras, scene_metadata, scene_sections,
     stored_anchors, weights_from_sections, zero_dead_offsets,
 )
@@ -73,6 +74,11 @@ class EncodeConfig:
     predictor_lr: float = 2e-3
     leaf_sample: float = 0.2  # fraction of the leaves per predictor iteration [S Fig. 12]
     zstd_level: int = 19
+    # "model": the stored attributes arithmetic-coded under the conditional entropy model (scene format 4,
+    # ``proxycodec.entropy``); "zstd": zstd alone (scene format 2). Predicted offsets and float32 attributes use zstd.
+    entropy: str = "model"
+    entropy_iters: int = 1500  # Adam iterations fitting the entropy model to the scene's symbols
+    entropy_hidden: int = 32
     seed: int = 0
     use_fitted: bool = True  # a stage-2 predictor + proxy mask in the weights sidecar (proxycodec fit) is used as is
     # Offsets of neural Gaussians that are never drawn (opacity <= dead_threshold from every sampled viewpoint and
@@ -109,6 +115,10 @@ class EncodeConfig:
         if self.max_cameras < 0:
             raise ProxycodecError("max cameras must be >= 0")
         check_proxy_selection(self.proxy_selection)
+        if self.entropy not in ("model", "zstd"):
+            raise ProxycodecError(f"entropy coding must be 'model' or 'zstd', got {self.entropy!r}")
+        if self.entropy_iters < 0 or not 1 <= self.entropy_hidden <= 1024:
+            raise ProxycodecError("entropy iterations must be >= 0 and its hidden width 1..1024")
         if not (1 <= self.zstd_level <= 22):
             raise ProxycodecError(f"zstd level must be 1..22, got {self.zstd_level}")
         if self.predictor_iters < 0:
@@ -282,8 +292,13 @@ def encode(
         meta["distill"]["held_out"] = _held_out(decoded, source_model, distilled, cfg, say)
     for k, v in (extra_meta or {}).items():  # the caller's word wins (convert: the source is the 3DGS PLY)
         meta[k] = _jsonable(v)
+    t_entropy = time.perf_counter()
+    raw = frozenset()
+    if _entropy_coded(cfg, meta):
+        sections, raw = _entropy_code(sections, meta, pos_sorted, voxel, mask, cfg, say)
+    t_entropy = time.perf_counter() - t_entropy
     packed, meta["weights_layout"] = pack_weights(sections)
-    file_bytes = write_container(out, meta, packed, level=cfg.zstd_level)
+    file_bytes = write_container(out, meta, packed, level=cfg.zstd_level, raw_sections=raw)
     _, _, infos, _ = read_header(out)
     say(f"wrote {out}: {file_bytes:,} B" + (f" ({source_bytes / file_bytes:.1f}x smaller than PLY + weights)"
                                            if source_bytes else ""))
@@ -291,9 +306,40 @@ def encode(
     return EncodeReport(
         path=Path(out), file_bytes=file_bytes, anchors=M, proxies=P, leaves=M - P, cell_size=cell_size,
         sections=[s.to_json() for s in infos], source_bytes=source_bytes,
-        seconds={"total": time.perf_counter() - t_start, "predictor": t_train,
+        seconds={"total": time.perf_counter() - t_start, "predictor": t_train, "entropy": t_entropy,
                  **({} if distilled is None else {"distill": distilled.seconds})}, training=training,
         model=decoded, meta=meta)
+
+
+def _entropy_coded(cfg: EncodeConfig, meta: dict) -> bool:
+    return cfg.entropy == "model" and meta["offsets"] == "stored" and FLOAT_BITS not in (
+        cfg.feature_bits, cfg.offset_bits, cfg.scaling_bits)
+
+
+def _entropy_code(sections: dict, meta: dict, pos_sorted: np.ndarray, voxel: float, mask: np.ndarray,
+                  cfg: EncodeConfig, say: Progress) -> tuple[dict, frozenset]:
+    """Scene format 4: the attribute sections replaced by the entropy stream and the integer nets (fitted here to
+    the scene's symbols); ``meta`` gains ``entropy``. Lossless: the decoder gets the same symbols back."""
+    from . import entropy, entropy_fit  # noqa: PLC0415
+
+    bits = {k: int(meta["quant"][k]["bits"]) for k in entropy.NETS}
+    M, Fd = len(mask), int(meta["anchors"]["feat_dim"])
+    feats = np.zeros((M, Fd), np.int64)
+    feats[mask] = entropy.centred(sections[PROXY_FEATURES].T, bits["features"])
+    a = entropy.Attributes(feats, entropy.centred(sections[SCALINGS].T, bits["scalings"]),
+                           entropy.centred(sections[OFFSETS].T, bits["offsets"]))
+    ctx = entropy.Context.of(pos_sorted, voxel, mask)
+    nets, _ = entropy_fit.fit_nets(ctx, a, hidden=cfg.entropy_hidden, iters=cfg.entropy_iters, seed=cfg.seed,
+                                   progress=say)
+    coded, emeta, sizes = entropy.encode(ctx, nets, a, bits)
+    emeta["bytes"] = {k: round(v, 1) for k, v in sizes.items()}
+    emeta["hidden"], emeta["iters"] = cfg.entropy_hidden, cfg.entropy_iters
+    meta["entropy"] = emeta
+    meta["scene_format"] = SCENE_FORMAT_ENTROPY
+    out = {k: v for k, v in sections.items() if k not in (PROXY_FEATURES, SCALINGS, OFFSETS)}
+    out.update(coded)
+    say("entropy model: " + ", ".join(f"{k} {v:,.0f} B" for k, v in sizes.items()))
+    return out, frozenset({entropy.STREAM})
 
 
 def _distill(model: SceneModel, fitted: tuple, cfg: EncodeConfig, say: Progress):

@@ -32,7 +32,10 @@ SCENE_FORMAT = 2  # version of the scene sections (inside container format 1); 2
 #: Written only for such decoders, so that a reader that predates the variants refuses the file ("upgrade") instead
 #: of ignoring the fields it does not know and rendering wrongly.
 SCENE_FORMAT_VARIANT = 3
-SUPPORTED_SCENE_FORMATS = (1, 2, 3)
+#: 4: the stored attributes (proxy features, scalings, offsets) arithmetic-coded under the conditional entropy
+#: model (``proxycodec.entropy``; ``meta["entropy"]``); weights and variants as in formats 2 and 3.
+SCENE_FORMAT_ENTROPY = 4
+SUPPORTED_SCENE_FORMATS = (1, 2, 3, 4)
 FLOAT_BITS = 32  # "bits" value meaning: store float32, no quantisation
 PREDICT_CHUNK = 65536  # leaves per predictor batch (fixed: the same batches in encoder and decoder)
 MAX_ANCHORS = 1 << 28
@@ -468,6 +471,12 @@ def stored_anchors(meta: dict, sections: dict[str, np.ndarray], err: ErrorFactor
     if int(mask.sum()) != P:
         raise err(f"proxy mask marks {int(mask.sum())} proxies, metadata says {P}")
     q = meta["quant"]
+    if (meta.get("scene_format") == SCENE_FORMAT_ENTROPY) != ("entropy" in meta):
+        raise err("entropy-coded sections need scene format 4 and its 'entropy' metadata")
+    if "entropy" in meta:
+        if meta["offsets"] != "stored":
+            raise err("entropy coding covers stored offsets only")
+        sections = {**sections, **entropy_sections(meta["entropy"], sections, pos, voxel, mask, Fd, K, q, err)}
     scal = dequantize(_section(sections, SCALINGS, err, (6, M), "uf"), q["scalings"],
                        SCALINGS, err).T
     feats = np.zeros((M, Fd), dtype=np.float32)
@@ -491,6 +500,22 @@ def stored_anchors(meta: dict, sections: dict[str, np.ndarray], err: ErrorFactor
     if pcfg.predict_offsets != (offsets_mode == "predicted"):
         raise err("predictor configuration disagrees with the offsets mode")
     return StoredAnchors(pos, feats, offs, np.ascontiguousarray(scal), mask, voxel, dcfg, pcfg)
+
+
+def entropy_sections(emeta: dict, sections: dict[str, np.ndarray], pos: np.ndarray, voxel: float,
+                     mask: np.ndarray, Fd: int, K: int, quant: dict, err) -> dict[str, np.ndarray]:
+    """Scene format 4: the attribute sections (as format 2 stores them, unsigned symbols) from the entropy stream."""
+    from . import entropy  # noqa: PLC0415  (constriction is imported only for such files)
+
+    bits = {k: quant[k]["bits"] for k in entropy.NETS}
+    a = entropy.decode(emeta, sections, entropy.Context.of(pos, voxel, mask), Fd, K, bits, err)
+    P = int(mask.sum())
+
+    def stored(v: np.ndarray, b: int) -> np.ndarray:
+        return np.ascontiguousarray((v + (1 << (b - 1))).T).astype(np.uint8 if b <= 8 else np.uint16)
+
+    return {PROXY_FEATURES: stored(a.features[mask], bits["features"]).reshape(Fd, P),
+            SCALINGS: stored(a.scalings, bits["scalings"]), OFFSETS: stored(a.offsets, bits["offsets"])}
 
 
 def scene_extras(meta: dict, proxy_mask: np.ndarray, err: ErrorFactory) -> tuple[list[Camera], tuple, dict]:

@@ -1,0 +1,185 @@
+"""The encoder's half of the entropy model (torch): float twins of ``entropy.IntNet``, the rate they assign, their
+fit to a scene's symbols, and their conversion to the integer nets the container stores.
+
+The float net sees the same integer inputs as the integer one (divided by 128) and outputs, per symbol, a centre and
+a scale level; its rate is the discrete Laplace probability of the symbol (``laplace_bits``). After fitting, each
+layer is re-expressed in integers (``to_int``): int8 weights with a power-of-two scale per layer, activations
+re-scaled by shifts chosen from the activations' 99.9th percentile on the scene itself. The integer net is what
+both encoder and decoder evaluate: rounding it only moves probabilities (a few bits), never correctness.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from . import entropy as ent
+
+INPUT_SCALE = 128.0
+
+
+class FloatNet(torch.nn.Module):
+    def __init__(self, n_in: int, n_out: int, hidden: int, with_base: bool):
+        super().__init__()
+        self.layers = torch.nn.ModuleList([torch.nn.Linear(n_in, hidden), torch.nn.Linear(hidden, hidden),
+                                           torch.nn.Linear(hidden, 2 * n_out)])
+        self.gain = torch.nn.Parameter(torch.zeros(n_out), requires_grad=with_base)
+        self.n_out = n_out
+
+    def forward(self, x: torch.Tensor, base: torch.Tensor | None = None):
+        h = x / INPUT_SCALE
+        for i, lin in enumerate(self.layers):
+            h = lin(h)
+            if i < len(self.layers) - 1:
+                h = torch.relu(h)
+        mu = h[:, :self.n_out]
+        if base is not None:
+            mu = mu + self.gain * base
+        return mu, h[:, self.n_out:]
+
+
+def laplace_bits(y: torch.Tensor, mu: torch.Tensor, level: torch.Tensor) -> torch.Tensor:
+    """-log2 P(y) per symbol for a Laplace(mu, b) integrated over [y - 1/2, y + 1/2], b from the (continuous) scale
+    level as the tables define it. ``y`` may carry uniform noise (training) or be integers (measuring)."""
+    b = torch.exp(ent.LN_B0 + level.clamp(-2.0, ent.SCALE_LEVELS + 1.0) / ent.LN_STEP)
+
+    def cdf(v):
+        z = (v - mu) / b
+        return torch.where(z < 0, 0.5 * torch.exp(z.clamp(max=0)), 1 - 0.5 * torch.exp(-z.clamp(min=0)))
+
+    p = cdf(y + 0.5) - cdf(y - 0.5)
+    return -torch.log2(p.clamp_min(1e-9))
+
+
+@dataclass
+class Sample:
+    """One pass's training data: integer inputs, base (or None), the centred symbols it codes."""
+
+    net: str
+    x: np.ndarray
+    base: np.ndarray | None
+    y: np.ndarray
+
+
+def samples(ctx: ent.Context, a: ent.Attributes) -> list[Sample]:
+    """Every coding pass's inputs and targets, exactly as the decoder will see them (the symbols are lossless)."""
+    out: list[Sample] = []
+    pending: list[tuple] = []
+    shifts = ent.input_shifts(a)
+    known = ent.Attributes(a.features.copy(), a.scalings.copy(), a.offsets.copy())
+
+    def predict(name, x, base):
+        pending.append((name, x, base))
+        n = ent.net_inputs(a.features.shape[1], a.offsets.shape[1] // 3)[name][1]
+        z = np.zeros((len(x), n), np.int64)
+        return z, z
+
+    def code(attr, rows, cols, m, s):
+        vals = getattr(known, attr)[rows][:, cols]
+        name, x, base = pending.pop()
+        out.append(Sample(name, x, base, vals))
+        return vals
+
+    ent.passes(ctx, predict, shifts, ent.Attributes(np.zeros_like(a.features), np.zeros_like(a.scalings),
+                                                    np.zeros_like(a.offsets)), code)
+    return out
+
+
+def fit_nets(ctx: ent.Context, a: ent.Attributes, *, hidden: int = 32, iters: int = 1500, lr: float = 3e-3,
+             seed: int = 0, batch: int = 16384, progress=None) -> tuple[dict[str, ent.IntNet], dict[str, float]]:
+    """Fit the three float nets to the scene's symbols (Adam on the rate), convert them to integer nets.
+    Returns the nets and the float model's estimated bytes per net."""
+    F, K = a.features.shape[1], a.offsets.shape[1] // 3
+    sizes = ent.net_inputs(F, K)
+    data = samples(ctx, a)
+    g = torch.Generator().manual_seed(seed)
+    torch.manual_seed(seed)
+    nets: dict[str, ent.IntNet] = {}
+    estimate: dict[str, float] = {}
+    for name in ent.NETS:
+        parts = [s for s in data if s.net == name]
+        n_in, n_out = sizes[name]
+        with_base = name != "features"
+        net = FloatNet(n_in, n_out, hidden, with_base)
+        xs, ys, bs, ms = [], [], [], []
+        for s in parts:  # pad each pass's targets to the net's outputs; a mask keeps the real ones
+            c = s.y.shape[1]
+            y = np.zeros((len(s.y), n_out), np.float32)
+            y[:, :c] = s.y
+            mk = np.zeros((len(s.y), n_out), np.float32)
+            mk[:, :c] = 1
+            xs.append(s.x)
+            ys.append(y)
+            ms.append(mk)
+            bs.append(np.zeros((len(s.y), n_out)) if s.base is None else s.base)
+        X = torch.from_numpy(np.concatenate(xs).astype(np.float32))
+        Y = torch.from_numpy(np.concatenate(ys))
+        B = torch.from_numpy(np.concatenate(bs).astype(np.float32))
+        Mk = torch.from_numpy(np.concatenate(ms))
+        if len(X) == 0:
+            nets[name] = to_int(net, X)
+            estimate[name] = 0.0
+            continue
+        with torch.no_grad():  # start at each channel's mean and spread
+            w = Mk.sum(0).clamp_min(1)
+            mean = (Y * Mk).sum(0) / w
+            sd = (((Y - mean) ** 2 * Mk).sum(0) / w).sqrt()
+            net.layers[-1].bias[:n_out] = mean
+            net.layers[-1].bias[n_out:] = (torch.log(sd / math.sqrt(2) + 0.5) - ent.LN_B0) * ent.LN_STEP
+        opt = torch.optim.Adam(net.parameters(), lr)
+        sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, iters, eta_min=lr * 0.1)
+        n = len(X)
+        for it in range(iters):
+            sel = torch.randint(0, n, (min(batch, n),), generator=g) if n > batch else slice(None)
+            mu, lvl = net(X[sel], B[sel] if with_base else None)
+            loss = (laplace_bits(Y[sel], mu, lvl) * Mk[sel]).sum() / Mk[sel].sum()
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+            sched.step()
+            if progress and (it + 1) % 500 == 0:
+                progress(f"entropy model {name}: {it + 1}/{iters}, {loss.item():.3f} bits/symbol")
+        with torch.no_grad():
+            mu, lvl = net(X, B if with_base else None)
+            estimate[name] = float((laplace_bits(Y, mu, lvl) * Mk).sum()) / 8
+        nets[name] = to_int(net, X)
+    return nets, estimate
+
+
+def _exp_for(w_abs_max: float, limit: float = 127.0, cap: int = 24) -> int:
+    if w_abs_max <= 0:
+        return cap
+    return max(0, min(cap, math.floor(math.log2(limit / w_abs_max))))
+
+
+def to_int(net: FloatNet, X: torch.Tensor) -> ent.IntNet:
+    """The float net in integers (see the module's docstring); ``X`` (the scene's inputs) calibrates the shifts."""
+    Ws, bs, shifts = [], [], []
+    g_in = INPUT_SCALE  # float value = integer / g_in
+    h = X / INPUT_SCALE
+    n_layers = len(net.layers)
+    with torch.no_grad():
+        for i, lin in enumerate(net.layers):
+            W = lin.weight.double() / g_in
+            b = lin.bias.double()
+            last = i == n_layers - 1
+            e = _exp_for(float(W.abs().max()), cap=ent.MAX_SHIFT if last else 24)
+            if last:
+                e = max(1, e)
+            Wq = torch.round(W * 2.0**e).clamp(-127, 127).to(torch.int8)
+            bq = torch.round(b * 2.0**e).clamp(-(1 << 22), 1 << 22).to(torch.int64)
+            Ws.append(Wq.numpy())
+            bs.append(bq.numpy())
+            if last:
+                gain = torch.round(net.gain.double() * 2.0**e).clamp(-(1 << 29), 1 << 29).to(torch.int64).numpy()
+                return ent.IntNet(tuple(Ws), tuple(bs), tuple(shifts), e, gain)
+            h = torch.relu(lin(h))
+            p = float(torch.quantile(h.flatten()[:1 << 20], 0.999)) if h.numel() else 1.0
+            k = _exp_for(max(p, 1e-6))  # float h * 2^k fits in 127
+            t = max(0, e - k)
+            shifts.append(t)
+            g_in = 2.0 ** (e - t)
+    raise AssertionError("unreachable")
