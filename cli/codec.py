@@ -48,6 +48,15 @@ def _stderr(msg: str) -> None:
 @encode_option("--leaf-sample", show_default=True, type=float,
                help="Fraction of the leaves in each predictor iteration (L_recon).")
 @encode_option("--zstd-level", show_default=True, type=int)
+@encode_option("--entropy", show_default=True, type=click.Choice(["auto", "model", "zstd"]),
+               help="model: arithmetic-code proxy features, scalings and offsets under the conditional entropy model "
+                    "fitted to the scene (scene format 4); zstd: zstd alone (scene format 2); auto: the model where "
+                    "it is smaller.")
+@encode_option("--entropy-iters", show_default=True, type=int, help="Iterations fitting the entropy model.")
+@encode_option("--lambda-rate", show_default=True, type=click.FloatRange(0.0),
+               help="With distillation: weight of the rate term (noise quantisation, learned steps per channel).")
+@encode_option("--learned-steps/--no-learned-steps", show_default=True,
+               help="Quantise with the steps rate training learned (fit --lambda-rate) instead of the bit depths.")
 @encode_option("--seed", show_default=True, type=int)
 @click.option("--refit-predictor", is_flag=True,
               help="Ignore a stage-2 predictor/proxy split stored by `fit`; select proxies and fit anew.")
@@ -67,7 +76,8 @@ def _stderr(msg: str) -> None:
 @click.option("--json", "as_json", is_flag=True, help="Print the encode report as JSON on stdout.")
 @user_errors
 def encode(scene, out, weights, proxy_ratio, proxy_selection, cell_size, feature_bits, offset_bits, scaling_bits,
-           weights_dtype, predict_offsets, max_cameras, drop_dead_offsets, predictor_iters, leaf_sample, zstd_level, seed,
+           weights_dtype, predict_offsets, max_cameras, drop_dead_offsets, predictor_iters, leaf_sample, zstd_level,
+           entropy, entropy_iters, lambda_rate, learned_steps, seed,
            refit_predictor, distill, distill_iters, distill_time_budget, distill_views, images, keep_anchor_scene,
            voxel_size, views, view_size, background, max_width, as_json) -> None:
     """Compress an anchor scene (Scaffold-GS PLY + weights sidecar, or a trained Scaffold-GS output: its folder or
@@ -89,7 +99,8 @@ def encode(scene, out, weights, proxy_ratio, proxy_selection, cell_size, feature
     knobs = dict(proxy_ratio=proxy_ratio, proxy_selection=proxy_selection, cell_size=cell_size,
                  feature_bits=feature_bits, offset_bits=offset_bits, scaling_bits=scaling_bits,
                  weights_dtype=weights_dtype, predict_offsets=predict_offsets, max_cameras=max_cameras,
-                 predictor_iters=predictor_iters, leaf_sample=leaf_sample, zstd_level=zstd_level, seed=seed)
+                 predictor_iters=predictor_iters, leaf_sample=leaf_sample, zstd_level=zstd_level, seed=seed,
+                 entropy=entropy, entropy_iters=entropy_iters, lambda_rate=lambda_rate, learned_steps=learned_steps)
     if not p.is_dir() and is_inria_ply(p):
         from ..convert import convert_and_encode
         from .convert import make_config

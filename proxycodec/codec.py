@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
+import zstandard
 import torch
 
 from .camera import Camera
@@ -75,10 +76,16 @@ class EncodeConfig:
     leaf_sample: float = 0.2  # fraction of the leaves per predictor iteration [S Fig. 12]
     zstd_level: int = 19
     # "model": the stored attributes arithmetic-coded under the conditional entropy model (scene format 4,
-    # ``proxycodec.entropy``); "zstd": zstd alone (scene format 2). Predicted offsets and float32 attributes use zstd.
-    entropy: str = "model"
+    # ``proxycodec.entropy``); "zstd": zstd alone (scene format 2); "auto": the model where its stream and nets are
+    # smaller than zstd's sections (small scenes: the nets' fixed cost does not pay). Predicted offsets and float32
+    # attributes use zstd.
+    entropy: str = "auto"
     entropy_iters: int = 1500  # Adam iterations fitting the entropy model to the scene's symbols
     entropy_hidden: int = 32
+    # Rate in distillation's loss (``FitConfig.lambda_rate``): noise quantisation with learned steps per channel.
+    lambda_rate: float = 0.0
+    # Quantise with the steps rate training learned (the scene's ``quant_steps`` metadata) instead of the bit depths.
+    learned_steps: bool = True
     seed: int = 0
     use_fitted: bool = True  # a stage-2 predictor + proxy mask in the weights sidecar (proxycodec fit) is used as is
     # Offsets of neural Gaussians that are never drawn (opacity <= dead_threshold from every sampled viewpoint and
@@ -115,8 +122,8 @@ class EncodeConfig:
         if self.max_cameras < 0:
             raise ProxycodecError("max cameras must be >= 0")
         check_proxy_selection(self.proxy_selection)
-        if self.entropy not in ("model", "zstd"):
-            raise ProxycodecError(f"entropy coding must be 'model' or 'zstd', got {self.entropy!r}")
+        if self.entropy not in ("auto", "model", "zstd"):
+            raise ProxycodecError(f"entropy coding must be 'auto', 'model' or 'zstd', got {self.entropy!r}")
         if self.entropy_iters < 0 or not 1 <= self.entropy_hidden <= 1024:
             raise ProxycodecError("entropy iterations must be >= 0 and its hidden width 1..1024")
         if not (1 <= self.zstd_level <= 22):
@@ -261,8 +268,9 @@ def encode(
     mask, predictor, cfg, cell_size, proxy_source = _choose_proxies(cfg, pos_sorted, voxel, coding.order, fitted,
                                                                     predictor, say)
     # 3. quantise what is stored; 4. fit the predictor against what the decoder will see
+    steps = _learned_steps(scene.metadata, cfg, Fd, K)
     q = quantize_anchors(feats, offs, scal, mask, feature_bits=cfg.feature_bits, offset_bits=cfg.offset_bits,
-                         scaling_bits=cfg.scaling_bits, predict_offsets=cfg.predict_offsets)
+                         scaling_bits=cfg.scaling_bits, predict_offsets=cfg.predict_offsets, steps=steps)
     pred, tcfg, training, t_train = _fit_predictor(cfg, predictor, pos_sorted, mask, q, offs, Fd, K, voxel, say)
     # 5. sections + metadata
     sections = scene_sections(coding, mask, q, model.decoder.state_arrays(), pred.state_arrays(), cfg.weights_dtype)
@@ -277,7 +285,8 @@ def encode(
                   "loss": "feature L_recon (MSE + 0.1 cos)", "rendering_loss": distilled is not None},
         proxy={"source": proxy_source, "ratio": cfg.proxy_ratio, "cell_size": cell_size,
                "cell_size_voxels": cell_size / voxel, "cell_target": cfg.cell_target, "seed": cfg.seed},
-        cameras_in_source=len(model.cameras or []), scene=_jsonable(dict(scene.metadata)),
+        cameras_in_source=len(model.cameras or []),
+        scene=_jsonable({k: v for k, v in scene.metadata.items() if k != "quant_steps"}),  # steps: in "quant"
         source={"bytes": source_bytes, "name": os.path.basename(source_name)},
         encoder={"zstd_level": cfg.zstd_level, "proxycodec": _version()},
         **({} if distilled is None else {"distill": {
@@ -311,9 +320,38 @@ def encode(
         model=decoded, meta=meta)
 
 
+def _learned_steps(scene_meta: dict, cfg: EncodeConfig, Fd: int, K: int) -> dict | None:
+    """The quantisation steps rate training learned (``quant_steps`` in the scene's metadata), checked."""
+    steps = scene_meta.get("quant_steps") if isinstance(scene_meta, dict) else None
+    if not cfg.learned_steps or not isinstance(steps, dict):
+        return None
+    want = {"features": Fd, "scalings": 6, "offsets": 3 * K}
+    out = {}
+    for k, n in want.items():
+        v = np.asarray(steps.get(k, []), dtype=np.float64)
+        if v.shape != (n,) or not np.all(np.isfinite(v) & (v > 0)):
+            raise ProxycodecError(f"the scene's learned quantisation steps for {k} are malformed")
+        if getattr(cfg, {"features": "feature_bits", "scalings": "scaling_bits", "offsets": "offset_bits"}[k]) \
+                != FLOAT_BITS:
+            out[k] = v
+    return out
+
+
 def _entropy_coded(cfg: EncodeConfig, meta: dict) -> bool:
-    return cfg.entropy == "model" and meta["offsets"] == "stored" and FLOAT_BITS not in (
+    return cfg.entropy != "zstd" and meta["offsets"] == "stored" and FLOAT_BITS not in (
         cfg.feature_bits, cfg.offset_bits, cfg.scaling_bits)
+
+
+#: ``entropy="auto"`` does not even fit the model when its nets hold more values than this share of what zstd stores
+#: for the same sections: measured savings stay well below it (SPEC.md section 4), so the nets could not pay.
+AUTO_MAX_SAVING = 0.25
+
+
+def _net_shapes(F: int, K: int, hidden: int) -> list[tuple[int, int]]:
+    from . import entropy  # noqa: PLC0415
+
+    return [(i, o) for n_in, n_out in entropy.net_inputs(F, K).values()
+            for i, o in ((n_in, hidden), (hidden, hidden), (hidden, 2 * n_out))]
 
 
 def _entropy_code(sections: dict, meta: dict, pos_sorted: np.ndarray, voxel: float, mask: np.ndarray,
@@ -322,8 +360,17 @@ def _entropy_code(sections: dict, meta: dict, pos_sorted: np.ndarray, voxel: flo
     the scene's symbols); ``meta`` gains ``entropy``. Lossless: the decoder gets the same symbols back."""
     from . import entropy, entropy_fit  # noqa: PLC0415
 
-    bits = {k: int(meta["quant"][k]["bits"]) for k in entropy.NETS}
+    names = (PROXY_FEATURES, SCALINGS, OFFSETS)
+    cctx = zstandard.ZstdCompressor(level=cfg.zstd_level)
+    zstd_bytes = sum(len(cctx.compress(np.ascontiguousarray(sections[k]).tobytes())) for k in names)
     M, Fd = len(mask), int(meta["anchors"]["feat_dim"])
+    K = int(meta["anchors"]["n_offsets"])
+    net_values = sum(i * o + o for i, o in _net_shapes(Fd, K, cfg.entropy_hidden))
+    if cfg.entropy == "auto" and net_values > AUTO_MAX_SAVING * zstd_bytes:
+        say(f"entropy model: its nets ({net_values:,} values) would outweigh what it can save on "
+            f"{zstd_bytes:,} B: zstd kept (scene format 2)")
+        return sections, frozenset()
+    bits = {k: int(meta["quant"][k]["bits"]) for k in entropy.NETS}
     feats = np.zeros((M, Fd), np.int64)
     feats[mask] = entropy.centred(sections[PROXY_FEATURES].T, bits["features"])
     a = entropy.Attributes(feats, entropy.centred(sections[SCALINGS].T, bits["scalings"]),
@@ -332,13 +379,20 @@ def _entropy_code(sections: dict, meta: dict, pos_sorted: np.ndarray, voxel: flo
     nets, _ = entropy_fit.fit_nets(ctx, a, hidden=cfg.entropy_hidden, iters=cfg.entropy_iters, seed=cfg.seed,
                                    progress=say)
     coded, emeta, sizes = entropy.encode(ctx, nets, a, bits)
+    model_bytes = coded[entropy.STREAM].nbytes + sum(len(cctx.compress(v.tobytes())) for k, v in coded.items()
+                                                     if k != entropy.STREAM)
+    if cfg.entropy == "auto" and model_bytes >= zstd_bytes:
+        say(f"entropy model: {model_bytes:,} B against zstd's {zstd_bytes:,} B: zstd kept (scene format 2)")
+        return sections, frozenset()
     emeta["bytes"] = {k: round(v, 1) for k, v in sizes.items()}
+    emeta["zstd_bytes"] = zstd_bytes  # what zstd alone would store for the same sections
     emeta["hidden"], emeta["iters"] = cfg.entropy_hidden, cfg.entropy_iters
     meta["entropy"] = emeta
     meta["scene_format"] = SCENE_FORMAT_ENTROPY
-    out = {k: v for k, v in sections.items() if k not in (PROXY_FEATURES, SCALINGS, OFFSETS)}
+    out = {k: v for k, v in sections.items() if k not in names}
     out.update(coded)
-    say("entropy model: " + ", ".join(f"{k} {v:,.0f} B" for k, v in sizes.items()))
+    say("entropy model: " + ", ".join(f"{k} {v:,.0f} B" for k, v in sizes.items())
+        + f" (+ nets; {model_bytes:,} B against zstd's {zstd_bytes:,} B)")
     return out, frozenset({entropy.STREAM})
 
 
@@ -356,7 +410,8 @@ def _distill(model: SceneModel, fitted: tuple, cfg: EncodeConfig, say: Progress)
         proxy_cell=float(cfg.cell_size) if cfg.cell_size else default_cell_size(pos, voxel, cfg.cell_target),
         predictor_hidden=cfg.predictor_hidden, predictor_blocks=cfg.predictor_blocks,
         predictor_context=cfg.predictor_context, predict_offsets=bool(cfg.predict_offsets),
-        lr_warmup=cfg.distill_lr_warmup, xi_full_share=0.0)  # as distillation was measured (SPEC.md section 4)
+        lr_warmup=cfg.distill_lr_warmup, xi_full_share=0.0,  # as distillation was measured (SPEC.md section 4)
+        lambda_rate=cfg.lambda_rate)
     views = None
     if cfg.images is not None:
         from .formats.datasets import load_dataset

@@ -62,20 +62,27 @@ TABLES = {"levels": SCALE_LEVELS, "ln_b0": LN_B0, "ln_step": LN_STEP, "resid": R
 # ---------------------------------------------------------------------------------------------- tables
 @functools.lru_cache(maxsize=1)
 def scale_tables() -> np.ndarray:
-    """[SCALE_LEVELS, ALPHABET] float64 holding integers: the unnormalised probability of each residual index
-    (residual = index - RESID) for each scale level. ``rho_s`` in Q32 from decimal arithmetic, powers by integer
-    multiplication (floor), the escapes weighted as the first power past the direct range (plus 1)."""
+    """[SCALE_LEVELS, ALPHABET] float64 holding integers: 2^32 times the probability of each residual index
+    (residual = index - RESID) under a Laplace of scale ``b_s`` integrated over the residual's unit bin (what the
+    training rate assumes: ``entropy_fit.laplace_bits``), floored, at least 1. Computed in decimal arithmetic (50
+    digits, correctly rounded, no libm), so the integers are the same everywhere. The escapes carry the tail
+    beyond the direct range."""
     ctx = decimal.Context(prec=50)
+    D = decimal.Decimal
+    one = D(1 << 32)
     out = np.zeros((SCALE_LEVELS, ALPHABET), np.float64)
     for s in range(SCALE_LEVELS):
-        b = ctx.exp(ctx.add(decimal.Decimal(LN_B0), ctx.divide(decimal.Decimal(s), decimal.Decimal(LN_STEP))))
-        rho = int(ctx.multiply(ctx.exp(ctx.minus(ctx.divide(decimal.Decimal(1), b))), decimal.Decimal(1 << 32)))
-        v, w = 1 << 32, []
-        for _ in range(RESID + 1):
-            w.append(v)
-            v = (v * rho) >> 32
-        row = np.array([w[abs(k)] for k in range(-RESID, RESID + 1)], np.float64)
-        row[0] = row[-1] = w[RESID] + 1
+        b = ctx.exp(ctx.add(D(LN_B0), ctx.divide(D(s), D(LN_STEP))))
+        rho = ctx.exp(ctx.minus(ctx.divide(D(1), b)))  # e^(-1/b): one residual further
+        sigma = ctx.exp(ctx.minus(ctx.divide(D(1), ctx.multiply(D(2), b))))  # e^(-1/2b)
+        w = [int(ctx.multiply(ctx.subtract(D(1), sigma), one))]  # P(0) = 1 - e^(-1/2b)
+        p = ctx.divide(ctx.subtract(ctx.divide(D(1), sigma), sigma), D(2))  # P(1) / rho
+        for _ in range(1, RESID + 1):
+            p = ctx.multiply(p, rho)  # P(k) = rho^k (e^(1/2b) - e^(-1/2b)) / 2, one side
+            w.append(int(ctx.multiply(p, one)))
+        tail = int(ctx.multiply(ctx.divide(ctx.multiply(p, D(1)), ctx.subtract(D(1), rho)), one))  # P(>= RESID)
+        row = np.array([max(1, w[abs(k)]) for k in range(-RESID, RESID + 1)], np.float64)
+        row[0] = row[-1] = max(1, tail)
         out[s] = row
     return out
 

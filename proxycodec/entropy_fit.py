@@ -183,3 +183,101 @@ def to_int(net: FloatNet, X: torch.Tensor) -> ent.IntNet:
             shifts.append(t)
             g_in = 2.0 ** (e - t)
     raise AssertionError("unreachable")
+
+
+# ---------------------------------------------------------------------------------------------- rate in the loss
+ATTR_CHANNELS = ("features", "scalings", "offsets")
+
+
+class RateModel(torch.nn.Module):
+    """The rate term of training (``fit --lambda-rate``, encode's distillation): noise quantisation with a learned
+    step per attribute channel, and the bits of the noisy symbols under float twins of the entropy model's nets.
+
+    ``forward`` returns the attributes with uniform noise of one step added (what the decoder's dequantised values
+    differ by, in expectation: the renders learn to tolerate it) and an estimate of the total bits of the stored
+    attributes, from a random sample of proxies and leaves scaled to their counts. The nets' inputs (contexts) are
+    detached: the rate's gradient reaches the coded values, their steps and the nets."""
+
+    def __init__(self, positions: np.ndarray, voxel: float, mask: np.ndarray, features: torch.Tensor,
+                 offsets: torch.Tensor, scalings: torch.Tensor, *, bits: int = 8, hidden: int = 32,
+                 sample: int = 2048):
+        super().__init__()
+        ctx = ent.Context.of(np.asarray(positions, np.float32), voxel, np.asarray(mask, bool))
+        self.register_buffer("posn", torch.from_numpy(ctx.posn).float())
+        self.register_buffer("rel", torch.from_numpy(ctx.rel).float())
+        self.register_buffer("near", torch.from_numpy(ctx.near))
+        self.register_buffer("proxies", torch.from_numpy(ctx.proxies))
+        self.register_buffer("leaves", torch.from_numpy(ctx.leaves))
+        self.sample = sample
+        self.log_step = torch.nn.ParameterDict()
+        M = len(mask)
+        F, K = features.shape[1], offsets.shape[1]
+        values = {"features": features.detach()[self.proxies], "scalings": scalings.detach(),
+                  "offsets": offsets.detach().reshape(M, 3 * K)}
+        for k, x in values.items():
+            lo, hi = x.min(0).values, x.max(0).values
+            step = ((hi - lo) / ((1 << bits) - 1)).clamp_min(1e-6)
+            self.log_step[k] = torch.nn.Parameter(torch.log(step))
+            self.register_buffer(f"mid_{k}", (lo + hi) / 2)
+        self.nets = torch.nn.ModuleDict({name: FloatNet(n_in, n_out, hidden, name != "features")
+                                         for name, (n_in, n_out) in ent.net_inputs(F, K).items()})
+        for name, net in self.nets.items():  # start at each channel's spread (uniform over the 2^bits levels)
+            with torch.no_grad():
+                net.layers[-1].bias[net.n_out:] = (math.log((1 << bits) / 4) - ent.LN_B0) * ent.LN_STEP
+
+    def steps(self) -> dict[str, np.ndarray]:
+        return {k: torch.exp(v).detach().double().numpy() for k, v in self.log_step.items()}
+
+    def forward(self, features: torch.Tensor, offsets: torch.Tensor, scalings: torch.Tensor, generator=None):
+        M, K = offsets.shape[:2]
+        F = features.shape[1]
+        st = {k: torch.exp(v) for k, v in self.log_step.items()}
+        u_f = torch.rand(features.shape, generator=generator) - 0.5
+        u_s = torch.rand(scalings.shape, generator=generator) - 0.5
+        u_o = torch.rand((M, 3 * K), generator=generator) - 0.5
+        o2 = offsets.reshape(M, 3 * K)
+        noisy_f = features + u_f * st["features"]
+        noisy_s = scalings + u_s * st["scalings"]
+        noisy_o = (o2 + u_o * st["offsets"]).reshape(M, K, 3)
+        # symbols (centred, continuous) of every anchor; features only matter on the proxies' rows
+        y_f = (features - self.mid_features) / st["features"] + u_f
+        y_s = (scalings - self.mid_scalings) / st["scalings"] + u_s
+        y_o = (o2 - self.mid_offsets) / st["offsets"] + u_o
+
+        def clip(v):
+            return v.detach().clamp(-ent.ACT_MAX, ent.ACT_MAX)
+
+        def pick(idx):
+            n = len(idx)
+            if n <= self.sample:
+                return idx, 1.0
+            sel = torch.randperm(n, generator=generator)[:self.sample]
+            return idx[sel], n / self.sample
+
+        bits = features.new_zeros(())
+        P_rows, wp = pick(self.proxies)
+        L_rows, wl = pick(self.leaves)
+        n_groups = -(-F // ent.FEATURE_GROUP)
+        yp = y_f[P_rows]
+        for g in range(n_groups):
+            c0, c1 = g * ent.FEATURE_GROUP, min(F, (g + 1) * ent.FEATURE_GROUP)
+            known = torch.zeros_like(yp)
+            known[:, :c0] = clip(yp[:, :c0])
+            onehot = torch.zeros(len(P_rows), n_groups)
+            onehot[:, g] = 64
+            mu, lvl = self.nets["features"](torch.cat([self.posn[P_rows], known, onehot], 1))
+            bits = bits + wp * laplace_bits(yp[:, c0:c1], mu[:, :c1 - c0], lvl[:, :c1 - c0]).sum()
+        f_ctx = clip(y_f)
+        for rows, w, leaf in ((P_rows, wp, False), (L_rows, wl, True)):
+            if not len(rows):
+                continue
+            src = self.near[rows] if leaf else rows
+            head = [f_ctx[src], self.posn[rows], torch.full((len(rows), 1), float(ent.FLAG if leaf else 0)),
+                    self.rel[rows]]
+            ref_s = y_s[src].detach() if leaf else torch.zeros(len(rows), y_s.shape[1])
+            mu, lvl = self.nets["scalings"](torch.cat(head + [clip(ref_s)], 1), ref_s)
+            bits = bits + w * laplace_bits(y_s[rows], mu, lvl).sum()
+            ref_o = y_o[src].detach() if leaf else torch.zeros(len(rows), y_o.shape[1])
+            mu, lvl = self.nets["offsets"](torch.cat(head + [clip(y_s[rows]), clip(ref_o)], 1), ref_o)
+            bits = bits + w * laplace_bits(y_o[rows], mu, lvl).sum()
+        return noisy_f, noisy_o, noisy_s, bits

@@ -103,6 +103,25 @@ def quantize(x: np.ndarray, bits: int) -> tuple[np.ndarray, dict]:
     return q, {"bits": int(bits), "offset": [float(v) for v in lo], "scale": [float(v) for v in scale]}
 
 
+def quantize_step(x: np.ndarray, step: np.ndarray) -> tuple[np.ndarray, dict]:
+    """[C, N] float -> (stored array, parameters) with a given step per channel (learned by rate training): levels
+    from each channel's minimum, as many bits as the largest level needs (at most 16: a step too fine for that is
+    widened to span the channel in 2^16 levels)."""
+    xd = np.asarray(x, dtype=np.float64)
+    step = np.asarray(step, dtype=np.float64)
+    if step.shape != (xd.shape[0],) or not np.all(np.isfinite(step) & (step > 0)):
+        raise ProxycodecError("quantisation steps must be positive, one per channel")
+    if xd.shape[1]:
+        lo, hi = xd.min(1), xd.max(1)
+    else:
+        lo = hi = np.zeros(xd.shape[0])
+    step = np.maximum(step, (hi - lo) / 65535.0)
+    q = np.rint((xd - lo[:, None]) / step[:, None])
+    bits = max(1, int(q.max(initial=0)).bit_length())
+    q = np.clip(q, 0, (1 << bits) - 1).astype(np.uint8 if bits <= 8 else np.uint16)
+    return q, {"bits": bits, "offset": [float(v) for v in lo], "scale": [float(v) for v in step]}
+
+
 def grid_to_xyz(ii: np.ndarray, step: float, rule: str) -> np.ndarray:
     if rule == "f64":
         return (ii.astype(np.float64) * step).astype(np.float32)
@@ -223,17 +242,24 @@ class QuantizedAnchors:
 
 
 def quantize_anchors(features: np.ndarray, offsets: np.ndarray, scalings: np.ndarray, proxy_mask: np.ndarray, *,
-                     feature_bits: int, offset_bits: int, scaling_bits: int, predict_offsets: bool
-                     ) -> QuantizedAnchors:
+                     feature_bits: int, offset_bits: int, scaling_bits: int, predict_offsets: bool,
+                     steps: dict | None = None) -> QuantizedAnchors:
     """Arrays in the stored order -> their quantised sections (channel-major: one row per channel). Stored: every
-    anchor's scalings, the proxies' features, every anchor's offsets (the proxies' only when ``predict_offsets``)."""
+    anchor's scalings, the proxies' features, every anchor's offsets (the proxies' only when ``predict_offsets``).
+    ``steps``: per attribute ("features", "scalings", "offsets"), a step per channel (``quantize_step``) used
+    instead of that attribute's bit depth."""
     err = ProxycodecError
     M, K = offsets.shape[:2]
     mask = proxy_mask
-    q_scal, qp_scal = quantize(scalings.T, scaling_bits)
-    q_feat, qp_feat = quantize(features[mask].T, feature_bits)
+    steps = steps or {}
+
+    def quant(x, bits, name):
+        return quantize_step(x, steps[name]) if name in steps else quantize(x, bits)
+
+    q_scal, qp_scal = quant(scalings.T, scaling_bits, "scalings")
+    q_feat, qp_feat = quant(features[mask].T, feature_bits, "features")
     off_rows = offsets if not predict_offsets else offsets[mask]
-    q_off, qp_off = quantize(off_rows.reshape(len(off_rows), 3 * K).T, offset_bits)
+    q_off, qp_off = quant(off_rows.reshape(len(off_rows), 3 * K).T, offset_bits, "offsets")
     feat_dq = features.copy()
     feat_dq[mask] = dequantize(q_feat, qp_feat, PROXY_FEATURES, err).T
     off_dq = offsets.copy()

@@ -34,6 +34,7 @@ import torch
 
 from .camera import Camera
 from .decoder import DecoderConfig, GaussianDecoder, visible_anchors
+from .entropy_fit import RateModel
 from .errors import ProxycodecError
 from .formats.container import read_container, write_container
 from .loop import (
@@ -162,6 +163,12 @@ class FitConfig:
     # stage 2): they must re-fit to predicted leaf features (+0.11 dB on lego at 200 px)
     decoder_lr_stage2: bool = True
     predict_offsets: bool = False  # stage 2 also predicts (and renders) the leaves' offsets; L_recon adds their MSE
+    # Rate in the loss (stage 2; ``entropy_fit.RateModel``): lambda_rate x estimated bits per anchor of the stored
+    # attributes, noise quantisation with a learned step per attribute channel (exported in the scene metadata as
+    # ``quant_steps``, which encode then quantises with). 0: off (no noise, no rate: training as before).
+    lambda_rate: float = 0.0
+    lr_quant_step: float = 2e-3  # Adam on the log of each channel's step
+    lr_rate_model: float = 3e-3  # the float entropy nets
     # bookkeeping
     image_cache_mb: int = 2048  # decoded 100% training images kept (float16); beyond this they are re-read
     backend: str = "auto"
@@ -183,6 +190,8 @@ class FitConfig:
             raise ProxycodecError("proxy ratio and leaf sample fraction must be in (0, 1]")
         PredictorConfig(hidden=self.predictor_hidden, n_blocks=self.predictor_blocks,
                         context=self.predictor_context)  # validates width, depth and context
+        if not (math.isfinite(self.lambda_rate) and self.lambda_rate >= 0):
+            raise ProxycodecError(f"lambda_rate must be >= 0, got {self.lambda_rate}")
         if not (0.0 <= self.lr_warmup < 1.0):
             raise ProxycodecError(f"learning-rate warm-up must be a fraction of the run in [0, 1), got {self.lr_warmup}")
         if self.predictor_warmup < 0:
@@ -361,6 +370,7 @@ class Trainer(TrainingRun):
         self.leaf_target: torch.Tensor | None = None  # [L, F] stage-1 features of the leaves
         self.leaf_offset_target: torch.Tensor | None = None  # [L, K, 3] their stage-1 offsets (predict_offsets)
         self.leaves: torch.Tensor | None = None  # [L] long
+        self.rate: RateModel | None = None  # stage 2 with lambda_rate > 0
         self.opt = self._optimiser()
         self.strategy = ScaffoldStrategy(config, self.anchors.num_anchors, self.anchors.n_offsets, self.log)
         self._start_run()
@@ -386,6 +396,10 @@ class Trainer(TrainingRun):
                 lrs[name] = exp_lr(*groups[name.split(".")[1]], q)
             elif name.startswith("predictor."):
                 lrs[name] = exp_lr(*c.lr_predictor, p2 if c.predictor_lr_stage2 else p)
+            elif name.startswith("rate.log_step"):
+                lrs[name] = c.lr_quant_step
+            elif name.startswith("rate."):
+                lrs[name] = c.lr_rate_model
         if c.lr_warmup > 0 and p < c.lr_warmup:
             ramp = p / c.lr_warmup
             lrs = {k: v * ramp for k, v in lrs.items()}
@@ -411,36 +425,48 @@ class Trainer(TrainingRun):
         self.step_xi = xi  # observe() reads it: densification statistics from xi >= stats_min_xi only
         cam = self.data.cameras[i]
         lam = self.lambda_recon(p) if self.stage >= 2 else 0.0
-        feats, offs, l_recon = self.leaf_tables(cam.scaled(xi), with_recon=lam != 0.0)
-        r = render_scene(self.anchors.scene(), self.decoder, cam, xi, background=self.bg, backend=c.backend,
+        scene, noisy, bits = self.anchors.scene(), None, None
+        if self.rate is not None:  # noise quantisation, and the rate of the noisy symbols
+            a = self.anchors
+            f_n, o_n, s_n, bits = self.rate(a.features, a.offsets, a.scalings)
+            noisy = f_n, o_n
+            scene = replace(scene, features=f_n, offsets=o_n, scalings=s_n)
+        feats, offs, l_recon = self.leaf_tables(cam.scaled(xi), with_recon=lam != 0.0, noisy=noisy)
+        r = render_scene(scene, self.decoder, cam, xi, background=self.bg, backend=c.backend,
                          features=feats, offsets=offs)
         loss = photometric_loss(r.image, gt, c.lambda_dssim)
         if r.gaussians.count:
             loss = loss + c.lambda_volume * r.gaussians.scales.prod(dim=1).mean()
         if lam != 0.0:
             loss = loss + lam * l_recon
+        if bits is not None:
+            loss = loss + c.lambda_rate * bits / self.anchors.num_anchors
         self.optimise(loss, r, r.image.shape[1], r.image.shape[0], self.learning_rates(p))
         return {**self.step_stats(loss, r.image, gt), "xi": xi, "view": i, "gaussians": int(r.projected.count),
-                "recon": float(l_recon.detach())}
+                "recon": float(l_recon.detach()),
+                **({} if bits is None else {"bits_per_anchor": float(bits.detach()) / self.anchors.num_anchors})}
 
-    def leaf_tables(self, cam: Camera, with_recon: bool = True
+    def leaf_tables(self, cam: Camera, with_recon: bool = True, noisy: tuple | None = None
                     ) -> tuple[torch.Tensor | None, torch.Tensor | None, torch.Tensor]:
         """Stage 2: the feature (and, with ``predict_offsets``, offset) tables with the visible leaves' rows
         predicted; and L_recon (0 without computing it when ``with_recon`` is False, i.e. its weight is 0: the
-        leaf sample is still drawn, so the random stream does not depend on the weight)."""
+        leaf sample is still drawn, so the random stream does not depend on the weight). ``noisy``: (features,
+        offsets) with quantisation noise (rate training), rendered and fed to the predictor instead."""
         zero = torch.zeros(())
         if self.stage < 2 or self.predictor is None:
-            return None, None, zero
+            return (None, None, zero) if noisy is None else (*noisy, zero)
         a = self.anchors
         po = self.cfg.predict_offsets
         vis = visible_anchors(a.positions, a.scene().extent_radius().detach(), cam)
         leaf_vis = vis[~self.proxy_mask[vis]]
-        feats, offs = a.features, (a.offsets if po else None)
+        base_f, base_o = noisy if noisy is not None else (a.features, a.offsets)
+        feats, offs = base_f, (base_o if po or noisy is not None else None)
         if leaf_vis.numel():
-            pred, pred_o = self.predictor.predict(a.positions, a.features, self.nearest, leaf_vis, offs)
-            feats = a.features.index_put((leaf_vis,), pred)
+            pred, pred_o = self.predictor.predict(a.positions, base_f, self.nearest, leaf_vis,
+                                                  base_o if po else None)
+            feats = base_f.index_put((leaf_vis,), pred)
             if po:
-                offs = a.offsets.index_put((leaf_vis,), pred_o)
+                offs = base_o.index_put((leaf_vis,), pred_o)
         # L_recon on a random 20% of all leaves (not only the visible ones) against their stage-1 values.
         L = int(self.leaves.numel())
         n = max(1, math.ceil(self.cfg.leaf_sample * L)) if L else 0
@@ -518,8 +544,13 @@ class Trainer(TrainingRun):
         else:
             warm = ""
         self.predictor.train()
+        if c.lambda_rate > 0:
+            self.rate = RateModel(a.positions.numpy(), a.voxel_size, mask, a.features.detach(), a.offsets.detach(),
+                                  a.scalings.detach())
+            for k, p in self.rate.named_parameters():
+                self.opt.add(f"rate.{k}", p)
         self.log(f"  stage 2 at iteration {self.iteration}: {int(mask.sum())} proxies / {a.num_anchors} anchors "
-                 f"(cell {cell:.4g}){warm}")
+                 f"(cell {cell:.4g}){warm}" + (f"; rate term lambda {c.lambda_rate:g}" if self.rate else ""))
 
     # ------------------------------------------------------------------ results
     @torch.no_grad()
@@ -541,7 +572,9 @@ class Trainer(TrainingRun):
 
     def result(self) -> FitResult:
         a = self.anchors
-        meta = {"name": Path(self.dataset_root).name if self.dataset_root else "fit"}
+        meta: dict[str, Any] = {"name": Path(self.dataset_root).name if self.dataset_root else "fit"}
+        if self.rate is not None:  # the learned quantisation steps: encode quantises with them
+            meta["quant_steps"] = {k: [float(x) for x in v] for k, v in self.rate.steps().items()}
         feats, offs = self.final_features()
         scene = a.export(feats, meta, offs)
         dec = self.decoder

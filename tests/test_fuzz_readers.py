@@ -28,6 +28,7 @@ import torch
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from PIL import Image
+from proxycodec import lite
 from proxycodec.formats import colmap, container
 from proxycodec.formats.blender import load_blender
 from proxycodec.formats.inria_ply import GaussianPly, read_inria_ply, write_inria_ply
@@ -157,6 +158,7 @@ def make_seeds() -> dict[str, bytes]:
          **_colmap_bin_seeds(), **_colmap_txt_seeds(), "blender_json": _blender_seed(),
          "container": _container_seed(), **_torch_seeds()}
     s["container_header"] = s["container"]
+    s["scene"] = (Path(__file__).resolve().parent / "golden" / "scene_v4.pxc").read_bytes()
     s["inria_convert"] = s["inria_ply"]
     s["ply_header"] = s["ply_le"]
     return s
@@ -206,6 +208,7 @@ READERS: dict[str, Callable[[Path], object]] = {
     "points3d_txt": colmap.read_points3d_txt,
     "blender_json": _blender_reader,
     "container": container.read_container, "container_header": container.read_header,
+    "scene": lambda p: lite.decode(p),  # a scene container (format 4: the entropy-coded sections)
     "torchscript": read_torchscript, "torch_checkpoint": read_torch_checkpoint,
     "cfg_args": read_cfg_args, "scaffold_cameras": read_scaffold_cameras,
 }
@@ -386,11 +389,11 @@ def test_regression_corpus(path, workdir):
 
 def test_corpus_is_small_and_covers_every_reader():
     files = corpus_files()
-    assert sum(p.stat().st_size for p in files) < 200_000
+    assert sum(p.stat().st_size for p in files) < 280_000  # ~70 KB of it: hostile entropy-coded scenes
     assert {p.parent.name for p in files} >= {"ply_le", "scaffold_ply", "inria_ply", "cameras_bin", "images_bin",
                                                "points3d_bin", "cameras_txt", "images_txt", "points3d_txt",
                                                "blender_json", "container", "torchscript", "torch_checkpoint",
-                                               "cfg_args", "scaffold_cameras"}
+                                               "cfg_args", "scaffold_cameras", "scene"}
 
 
 # ------------------------------------------------------------------------------ structure-aware container forging
@@ -506,6 +509,7 @@ _MEMORY_PROBE = r"""
 import json, resource, struct, sys, zlib
 from pathlib import Path
 from proxycodec.errors import ProxycodecError
+from proxycodec import lite
 from proxycodec.formats import colmap, container
 from proxycodec.formats.ply import read_ply
 sys.path.insert(0, sys.argv[2])

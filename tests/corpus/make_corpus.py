@@ -72,6 +72,21 @@ def _hostile_gaussians() -> dict[str, bytes]:
     return out
 
 
+def scene_corpus() -> dict[str, bytes]:
+    """Entropy-coded scene containers (scene format 4) with hostile entropy sections behind valid CRCs: the golden
+    file with its ANS stream flipped, an escape too many, and integer nets that could overflow."""
+    import tempfile
+
+    from test_entropy import GOLDEN, HOSTILE, _rewrite
+
+    out = {}
+    with tempfile.TemporaryDirectory() as d:
+        for case in ("stream_word_flipped", "escapes_extra", "nets_overflow"):
+            meta_fn, arrays_fn = HOSTILE[case]
+            out[f"{case}.pxc"] = _rewrite(GOLDEN / "scene_v4.pxc", Path(d) / "x.pxc", meta_fn, arrays_fn).read_bytes()
+    return out
+
+
 def main() -> None:
     S = F.make_seeds()
     files: dict[str, dict[str, bytes]] = {k: {} for k in F.READERS}
@@ -264,6 +279,8 @@ def main() -> None:
     add("scaffold_cameras", "width_1e30.json", cams.replace(b'"width": 16', b'"width": 1' + b"0" * 30, 1))
     add("scaffold_cameras", "deep_nesting.json", b"[" * 5000 + b"]" * 5000)
     add("scaffold_cameras", "empty_list.json", b"[]")
+    for name, data in scene_corpus().items():
+        add("scene", name, data)
 
     for reader, items in files.items():
         d = HERE / reader
