@@ -321,19 +321,25 @@ def encode(
 
 
 def _learned_steps(scene_meta: dict, cfg: EncodeConfig, Fd: int, K: int) -> dict | None:
-    """The quantisation steps rate training learned (``quant_steps`` in the scene's metadata), checked."""
-    steps = scene_meta.get("quant_steps") if isinstance(scene_meta, dict) else None
-    if not cfg.learned_steps or not isinstance(steps, dict):
+    """The quantisation grids rate training learned (``quant_steps`` in the scene's metadata: per attribute
+    ``{"step": [C], "origin": [C]}``), checked; attributes the encode options store as float32 are left out."""
+    grids = scene_meta.get("quant_steps") if isinstance(scene_meta, dict) else None
+    if not cfg.learned_steps or not isinstance(grids, dict):
         return None
     want = {"features": Fd, "scalings": 6, "offsets": 3 * K}
+    knob = {"features": "feature_bits", "scalings": "scaling_bits", "offsets": "offset_bits"}
     out = {}
     for k, n in want.items():
-        v = np.asarray(steps.get(k, []), dtype=np.float64)
-        if v.shape != (n,) or not np.all(np.isfinite(v) & (v > 0)):
-            raise ProxycodecError(f"the scene's learned quantisation steps for {k} are malformed")
-        if getattr(cfg, {"features": "feature_bits", "scalings": "scaling_bits", "offsets": "offset_bits"}[k]) \
-                != FLOAT_BITS:
-            out[k] = v
+        g = grids.get(k)
+        try:
+            step, origin = (np.asarray(g[f], dtype=np.float64) for f in ("step", "origin"))
+        except (TypeError, KeyError, ValueError):
+            raise ProxycodecError(f"the scene's learned quantisation grid for {k} is malformed") from None
+        if step.shape != (n,) or origin.shape != (n,) or not np.all(np.isfinite(step) & (step > 0)
+                                                                  & np.isfinite(origin)):
+            raise ProxycodecError(f"the scene's learned quantisation grid for {k} is malformed")
+        if getattr(cfg, knob[k]) != FLOAT_BITS:
+            out[k] = (step, origin)
     return out
 
 

@@ -190,13 +190,14 @@ ATTR_CHANNELS = ("features", "scalings", "offsets")
 
 
 class RateModel(torch.nn.Module):
-    """The rate term of training (``fit --lambda-rate``, encode's distillation): noise quantisation with a learned
-    step per attribute channel, and the bits of the noisy symbols under float twins of the entropy model's nets.
+    """The rate term of training (``fit --lambda-rate``, encode's distillation): quantisation on a learned grid per
+    attribute channel (``origin + k step``), and the bits of the symbols under float twins of the entropy model's nets.
 
-    ``forward`` returns the attributes with uniform noise of one step added (what the decoder's dequantised values
-    differ by, in expectation: the renders learn to tolerate it) and an estimate of the total bits of the stored
-    attributes, from a random sample of proxies and leaves scaled to their counts. The nets' inputs (contexts) are
-    detached: the rate's gradient reaches the coded values, their steps and the nets."""
+    ``forward`` returns the attributes rounded to their grids with a straight-through gradient (what the container
+    will store, exactly: encode quantises on the same grids; the step's gradient is LSQ's, ``round(v) - v``) and an
+    estimate of the total bits of the stored attributes, with uniform noise in place of rounding (the usual
+    differentiable proxy), from a random sample of proxies and leaves scaled to their counts. The nets' inputs
+    (contexts) are detached: the rate's gradient reaches the coded values, their steps and the nets."""
 
     def __init__(self, positions: np.ndarray, voxel: float, mask: np.ndarray, features: torch.Tensor,
                  offsets: torch.Tensor, scalings: torch.Tensor, *, bits: int = 8, hidden: int = 32,
@@ -225,24 +226,40 @@ class RateModel(torch.nn.Module):
             with torch.no_grad():
                 net.layers[-1].bias[net.n_out:] = (math.log((1 << bits) / 4) - ent.LN_B0) * ent.LN_STEP
 
-    def steps(self) -> dict[str, np.ndarray]:
-        return {k: torch.exp(v).detach().double().numpy() for k, v in self.log_step.items()}
+    def grids(self) -> dict[str, dict[str, list[float]]]:
+        """Per attribute: the quantisation grid, ``{"step": [C], "origin": [C]}`` (``quant_steps`` metadata)."""
+        return {k: {"step": [float(x) for x in torch.exp(v).detach().double()],
+                    "origin": [float(x) for x in getattr(self, f"mid_{k}").double()]}
+                for k, v in self.log_step.items()}
+
+    @torch.no_grad()
+    def rounded(self, features: torch.Tensor, offsets: torch.Tensor, scalings: torch.Tensor):
+        """(features, offsets, scalings) on their grids: what training renders and the container stores."""
+        M, K = offsets.shape[:2]
+        out = []
+        for k, x in (("features", features), ("offsets", offsets.reshape(M, 3 * K)), ("scalings", scalings)):
+            step, mid = torch.exp(self.log_step[k]), getattr(self, f"mid_{k}")
+            out.append(mid + torch.round((x - mid) / step) * step)
+        return out[0], out[1].reshape(M, K, 3), out[2]
 
     def forward(self, features: torch.Tensor, offsets: torch.Tensor, scalings: torch.Tensor, generator=None):
         M, K = offsets.shape[:2]
         F = features.shape[1]
         st = {k: torch.exp(v) for k, v in self.log_step.items()}
-        u_f = torch.rand(features.shape, generator=generator) - 0.5
-        u_s = torch.rand(scalings.shape, generator=generator) - 0.5
-        u_o = torch.rand((M, 3 * K), generator=generator) - 0.5
         o2 = offsets.reshape(M, 3 * K)
-        noisy_f = features + u_f * st["features"]
-        noisy_s = scalings + u_s * st["scalings"]
-        noisy_o = (o2 + u_o * st["offsets"]).reshape(M, K, 3)
-        # symbols (centred, continuous) of every anchor; features only matter on the proxies' rows
-        y_f = (features - self.mid_features) / st["features"] + u_f
-        y_s = (scalings - self.mid_scalings) / st["scalings"] + u_s
-        y_o = (o2 - self.mid_offsets) / st["offsets"] + u_o
+        v_f = (features - self.mid_features) / st["features"]  # continuous symbols; features: the proxies' rows
+        v_s = (scalings - self.mid_scalings) / st["scalings"]
+        v_o = (o2 - self.mid_offsets) / st["offsets"]
+
+        def rounded(v, mid, step):  # straight through: forward on the grid, backward as identity in v
+            return mid + (v + (torch.round(v) - v).detach()) * step
+
+        q_f = rounded(v_f, self.mid_features, st["features"])
+        q_s = rounded(v_s, self.mid_scalings, st["scalings"])
+        q_o = rounded(v_o, self.mid_offsets, st["offsets"]).reshape(M, K, 3)
+        y_f = v_f + torch.rand(v_f.shape, generator=generator) - 0.5
+        y_s = v_s + torch.rand(v_s.shape, generator=generator) - 0.5
+        y_o = v_o + torch.rand(v_o.shape, generator=generator) - 0.5
 
         def clip(v):
             return v.detach().clamp(-ent.ACT_MAX, ent.ACT_MAX)
@@ -280,4 +297,4 @@ class RateModel(torch.nn.Module):
             ref_o = y_o[src].detach() if leaf else torch.zeros(len(rows), y_o.shape[1])
             mu, lvl = self.nets["offsets"](torch.cat(head + [clip(y_s[rows]), clip(ref_o)], 1), ref_o)
             bits = bits + w * laplace_bits(y_o[rows], mu, lvl).sum()
-        return noisy_f, noisy_o, noisy_s, bits
+        return q_f, q_o, q_s, bits

@@ -103,23 +103,24 @@ def quantize(x: np.ndarray, bits: int) -> tuple[np.ndarray, dict]:
     return q, {"bits": int(bits), "offset": [float(v) for v in lo], "scale": [float(v) for v in scale]}
 
 
-def quantize_step(x: np.ndarray, step: np.ndarray) -> tuple[np.ndarray, dict]:
-    """[C, N] float -> (stored array, parameters) with a given step per channel (learned by rate training): levels
-    from each channel's minimum, as many bits as the largest level needs (at most 16: a step too fine for that is
-    widened to span the channel in 2^16 levels)."""
+def quantize_step(x: np.ndarray, step: np.ndarray, origin: np.ndarray) -> tuple[np.ndarray, dict]:
+    """[C, N] float -> (stored array, parameters) on a given grid per channel, ``origin + k step`` (learned by rate
+    training): stored levels ``k - min k``, as many bits as the largest needs. At most 16: a grid too fine for that
+    is replaced by the channel's range in 2^16 levels."""
     xd = np.asarray(x, dtype=np.float64)
     step = np.asarray(step, dtype=np.float64)
-    if step.shape != (xd.shape[0],) or not np.all(np.isfinite(step) & (step > 0)):
-        raise ProxycodecError("quantisation steps must be positive, one per channel")
-    if xd.shape[1]:
-        lo, hi = xd.min(1), xd.max(1)
-    else:
-        lo = hi = np.zeros(xd.shape[0])
-    step = np.maximum(step, (hi - lo) / 65535.0)
-    q = np.rint((xd - lo[:, None]) / step[:, None])
+    origin = np.asarray(origin, dtype=np.float64)
+    C = xd.shape[0]
+    if step.shape != (C,) or origin.shape != (C,) or not np.all(np.isfinite(step) & (step > 0) & np.isfinite(origin)):
+        raise ProxycodecError("quantisation grids must be finite with positive steps, one per channel")
+    k = np.rint((xd - origin[:, None]) / step[:, None]) if xd.shape[1] else np.zeros(xd.shape)
+    lo = k.min(1) if xd.shape[1] else np.zeros(C)
+    q = k - lo[:, None]
     bits = max(1, int(q.max(initial=0)).bit_length())
-    q = np.clip(q, 0, (1 << bits) - 1).astype(np.uint8 if bits <= 8 else np.uint16)
-    return q, {"bits": bits, "offset": [float(v) for v in lo], "scale": [float(v) for v in step]}
+    if bits > 16:
+        return quantize(x, 16)
+    q = q.astype(np.uint8 if bits <= 8 else np.uint16)
+    return q, {"bits": bits, "offset": [float(v) for v in origin + lo * step], "scale": [float(v) for v in step]}
 
 
 def grid_to_xyz(ii: np.ndarray, step: float, rule: str) -> np.ndarray:
@@ -246,15 +247,15 @@ def quantize_anchors(features: np.ndarray, offsets: np.ndarray, scalings: np.nda
                      steps: dict | None = None) -> QuantizedAnchors:
     """Arrays in the stored order -> their quantised sections (channel-major: one row per channel). Stored: every
     anchor's scalings, the proxies' features, every anchor's offsets (the proxies' only when ``predict_offsets``).
-    ``steps``: per attribute ("features", "scalings", "offsets"), a step per channel (``quantize_step``) used
-    instead of that attribute's bit depth."""
+    ``steps``: per attribute ("features", "scalings", "offsets"), a grid per channel, ``(step, origin)``
+    (``quantize_step``), used instead of that attribute's bit depth."""
     err = ProxycodecError
     M, K = offsets.shape[:2]
     mask = proxy_mask
     steps = steps or {}
 
     def quant(x, bits, name):
-        return quantize_step(x, steps[name]) if name in steps else quantize(x, bits)
+        return quantize_step(x, *steps[name]) if name in steps else quantize(x, bits)
 
     q_scal, qp_scal = quant(scalings.T, scaling_bits, "scalings")
     q_feat, qp_feat = quant(features[mask].T, feature_bits, "features")

@@ -164,8 +164,8 @@ class FitConfig:
     decoder_lr_stage2: bool = True
     predict_offsets: bool = False  # stage 2 also predicts (and renders) the leaves' offsets; L_recon adds their MSE
     # Rate in the loss (stage 2; ``entropy_fit.RateModel``): lambda_rate x estimated bits per anchor of the stored
-    # attributes, noise quantisation with a learned step per attribute channel (exported in the scene metadata as
-    # ``quant_steps``, which encode then quantises with). 0: off (no noise, no rate: training as before).
+    # attributes; they are rendered rounded to a learned grid per attribute channel (straight-through), exported in
+    # the scene metadata as ``quant_steps``, which encode quantises on. 0: off (training as before).
     lambda_rate: float = 0.0
     lr_quant_step: float = 2e-3  # Adam on the log of each channel's step
     lr_rate_model: float = 3e-3  # the float entropy nets
@@ -426,7 +426,7 @@ class Trainer(TrainingRun):
         cam = self.data.cameras[i]
         lam = self.lambda_recon(p) if self.stage >= 2 else 0.0
         scene, noisy, bits = self.anchors.scene(), None, None
-        if self.rate is not None:  # noise quantisation, and the rate of the noisy symbols
+        if self.rate is not None:  # the attributes on their quantisation grids, and their rate
             a = self.anchors
             f_n, o_n, s_n, bits = self.rate(a.features, a.offsets, a.scalings)
             noisy = f_n, o_n
@@ -556,14 +556,16 @@ class Trainer(TrainingRun):
     @torch.no_grad()
     def final_features(self) -> tuple[torch.Tensor, torch.Tensor]:
         """Features and offsets as stage 2 rendered them: the proxies' own; the leaves' predicted features (and
-        predicted offsets with ``predict_offsets``)."""
+        predicted offsets with ``predict_offsets``). With the rate term, the stored attributes on their grids."""
         a = self.anchors
         f = a.features.detach().clone()
         o = a.offsets.detach().clone()
+        if self.rate is not None:
+            f, o, _ = self.rate.rounded(f, o, a.scalings.detach())
         if self.stage >= 2 and self.predictor is not None and self.leaves.numel():
             self.predictor.eval()
             po = self.cfg.predict_offsets
-            pred, pred_o = self.predictor.predict(a.positions, a.features.detach(), self.nearest, self.leaves,
+            pred, pred_o = self.predictor.predict(a.positions, f.clone(), self.nearest, self.leaves,
                                                   o if po else None)
             f[self.leaves] = pred
             if po:
@@ -574,9 +576,12 @@ class Trainer(TrainingRun):
         a = self.anchors
         meta: dict[str, Any] = {"name": Path(self.dataset_root).name if self.dataset_root else "fit"}
         if self.rate is not None:  # the learned quantisation steps: encode quantises with them
-            meta["quant_steps"] = {k: [float(x) for x in v] for k, v in self.rate.steps().items()}
+            meta["quant_steps"] = self.rate.grids()
         feats, offs = self.final_features()
         scene = a.export(feats, meta, offs)
+        if self.rate is not None:  # the scalings as rendered too: on their grid
+            scene = replace(scene, scalings=self.rate.rounded(a.features.detach(), a.offsets.detach(),
+                                                              a.scalings.detach())[2]).validate()
         dec = self.decoder
         dec.eval()
         cams = [self.data.cameras[i] for i in self.data.test_indices] + \

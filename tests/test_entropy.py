@@ -281,7 +281,10 @@ def test_rate_model_gradients_and_coarser_steps_cost_fewer_bits():
     g = torch.Generator().manual_seed(0)
     fn, on, sn, bits = rate(f, o, s, generator=g)
     assert fn.shape == f.shape and on.shape == o.shape and sn.shape == s.shape
-    assert (fn - f).abs().max() <= torch.exp(rate.log_step["features"]).max() / 2 + 1e-6
+    assert (fn - f).abs().max() <= torch.exp(rate.log_step["features"]).max() / 2 + 1e-5
+    step, mid = torch.exp(rate.log_step["offsets"]), rate.mid_offsets
+    k = (on.reshape(M, -1) - mid) / step
+    assert torch.allclose(k, torch.round(k), atol=1e-3)  # on the grid the container will store
     bits.backward()
     for t in (f, o, s, *rate.log_step.values()):
         assert t.grad is not None and torch.isfinite(t.grad).all()
@@ -297,11 +300,16 @@ def test_learned_steps_reach_the_container(tmp_path):
     from test_codec import FAST, tiny_model
 
     model = tiny_model()
-    steps = {"features": [0.05] * 32, "scalings": [0.02] * 6, "offsets": [0.03] * 30}
+    steps = {"features": {"step": [0.05] * 32, "origin": [0.01] * 32},
+             "scalings": {"step": [0.02] * 6, "origin": [0.0] * 6},
+             "offsets": {"step": [0.03] * 30, "origin": [0.005] * 30}}
     model.scene = replace(model.scene, metadata={**model.scene.metadata, "quant_steps": steps})
     rep = codec.encode(model, tmp_path / "s.pxc", **FAST, entropy_iters=50, entropy="model")
     q = rep.meta["quant"]
-    assert q["offsets"]["scale"] == pytest.approx(steps["offsets"]) and q["offsets"]["bits"] == 6  # 1/0.03 levels
+    assert q["offsets"]["scale"] == pytest.approx(steps["offsets"]["step"]) and q["offsets"]["bits"] == 6  # 1/0.03
+    # the stored values lie on the given grid, origin + k step
+    k = (np.asarray(q["offsets"]["offset"]) - 0.005) / 0.03
+    assert np.allclose(k, np.rint(k), atol=1e-6)
     assert "quant_steps" not in rep.meta["scene"]
     off = model.scene.offsets.numpy()
     dec = codec.decode(rep.path).scene.offsets.numpy()
