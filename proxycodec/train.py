@@ -514,6 +514,19 @@ class Trainer(TrainingRun):
             self.opt.add(f"predictor.{k}", p)
         self.stage = 2
 
+    def _setup_rate(self, mask: np.ndarray, state: dict[str, np.ndarray] | None = None) -> None:
+        """The rate model of ``lambda_rate`` > 0 (grids from the current attributes, or ``state`` from a
+        checkpoint), its parameters in the optimiser."""
+        if self.cfg.lambda_rate <= 0:
+            return
+        a = self.anchors
+        self.rate = RateModel(a.positions.numpy(), a.voxel_size, mask, a.features.detach(), a.offsets.detach(),
+                              a.scalings.detach())
+        if state is not None:
+            self.rate.load_state_dict({k: torch.from_numpy(np.array(v)) for k, v in state.items()})
+        for k, p in self.rate.named_parameters():
+            self.opt.add(f"rate.{k}", p)
+
     def proxy_cell_size(self) -> float:
         c = self.cfg
         return c.proxy_cell if c.proxy_cell > 0 else default_cell_size(self.anchors.positions,
@@ -544,11 +557,7 @@ class Trainer(TrainingRun):
         else:
             warm = ""
         self.predictor.train()
-        if c.lambda_rate > 0:
-            self.rate = RateModel(a.positions.numpy(), a.voxel_size, mask, a.features.detach(), a.offsets.detach(),
-                                  a.scalings.detach())
-            for k, p in self.rate.named_parameters():
-                self.opt.add(f"rate.{k}", p)
+        self._setup_rate(mask)
         self.log(f"  stage 2 at iteration {self.iteration}: {int(mask.sum())} proxies / {a.num_anchors} anchors "
                  f"(cell {cell:.4g}){warm}" + (f"; rate term lambda {c.lambda_rate:g}" if self.rate else ""))
 
@@ -623,6 +632,9 @@ class Trainer(TrainingRun):
                 arrays["leaf_offset_target"] = self.leaf_offset_target.numpy().copy()
             for k, v in self.predictor.state_arrays().items():
                 arrays[f"predictor/{k}"] = v
+            if self.rate is not None:
+                for k, v in self.rate.state_dict().items():
+                    arrays[f"rate/{k}"] = v.detach().numpy().copy()
         arrays.update(self.opt.state_arrays())
         meta = {
             "kind": CHECKPOINT_KIND, "version": CHECKPOINT_VERSION, "config": self.cfg.to_json(),
@@ -671,6 +683,8 @@ class Trainer(TrainingRun):
                     self.leaf_offset_target = torch.from_numpy(np.array(arr["leaf_offset_target"]))
                 self._setup_proxies(np.asarray(arr["proxy_mask"], dtype=bool))
                 self.predictor.train()
+                self._setup_rate(np.asarray(arr["proxy_mask"], dtype=bool),
+                                 {k[len("rate/"):]: v for k, v in arr.items() if k.startswith("rate/")})
             self.opt.load_arrays(arr, m["adam_steps"])
             self.strategy.load_arrays(arr, m.get("last_adjust", 0))
             self.view_stack = [int(x) for x in arr["view_stack"]]

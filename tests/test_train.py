@@ -293,6 +293,38 @@ class TestFit:
         with pytest.raises(ProxycodecError, match="residual"):
             small_config(predict_offsets=True, predictor="proxy-leaf-mlp")
 
+    def test_rate_term_renders_on_learned_grids_that_encode_keeps(self, data, tmp_path):
+        """fit --lambda-rate: the PLY's attributes lie on the learned grids (what stage 2 rendered), encode stores
+        exactly them (offsets and scalings bit-close, 8-bit steps not imposed), and a run resumed in stage 2 (rate
+        model in the checkpoint) ends where an uninterrupted one does."""
+        from proxycodec.codec import decode, encode
+        from proxycodec.model import SceneModel
+
+        cfg = small_config(iters=24, lambda_rate=1e-3)
+        out = tmp_path / "r.ply"
+        _fit(data, out, cfg)
+        m = SceneModel.load(out)
+        grids = m.scene.metadata["quant_steps"]
+        off = m.scene.offsets.numpy().reshape(len(m.scene.offsets), -1)
+        k = (off - np.asarray(grids["offsets"]["origin"])) / np.asarray(grids["offsets"]["step"])
+        assert np.abs(k - np.rint(k)).max() < 1e-3
+        rep = encode(out, tmp_path / "r.pxc", max_cameras=1, entropy="model", entropy_iters=50)
+        assert rep.meta["quant"]["offsets"]["scale"] == pytest.approx(grids["offsets"]["step"])
+        d = decode(rep.path).scene
+        pos, dpos = m.scene.positions.numpy(), d.positions.numpy()
+        a, b = np.lexsort(pos.T[::-1]), np.lexsort(dpos.T[::-1])
+        for name in ("offsets", "scalings"):
+            x, y = getattr(m.scene, name).numpy()[a], getattr(d, name).numpy()[b]
+            assert np.abs(x - y).max() <= 1e-5 * (1 + np.abs(x).max()), name
+        out2 = tmp_path / "r2.ply"
+        with pytest.raises(KeyboardInterrupt):
+            _fit(data, out2, cfg, stop_after=18)
+        _fit(data, out2, cfg, resume=True)
+        m2 = SceneModel.load(out2)
+        assert m2.scene.metadata["quant_steps"]["offsets"]["step"] == pytest.approx(grids["offsets"]["step"],
+                                                                                    rel=1e-3)
+        assert torch.allclose(m2.scene.offsets, m.scene.offsets, atol=1e-3)
+
     def test_l_recon_at_weight_zero_is_skipped_without_changing_the_run(self, data, monkeypatch):
         """lambda_recon 0 (the default) skips L_recon's predictor pass; the run is bit for bit the one that
         computes it and adds 0 times it (the leaf sample is still drawn)."""
