@@ -15,6 +15,9 @@ each step finishes, a re-run resumes):
    converted back to PLY to evaluate what the SPZ holds; skipped with the reason when npx cannot run it);
 4. encode-side sweeps on the main fit, one knob at a time around the defaults, predictor refitted at each point:
    proxy ratio, leaf sample fraction per predictor iteration, quantisation bits, zstd level, predictor depth;
+4b. the rate-distortion sweep: fits at the main budget with the rate term (``fit --lambda-rate``, ``RATE_LAMBDAS``),
+   each encoded with the defaults (entropy model, learned grids) and evaluated: with the main fit (lambda 0) they
+   are the RD curve of the entropy model (issue #17);
 5. the paper's ablations (lego) at a smaller reference width and a fixed number of iterations (``ABLATION``: 200 px,
    3000 iterations; iteration budgets give every fit the same length whatever the machine's load, which a 2-minute
    wall-time budget did not: two seeds of the default differed by 2.2 dB), each evaluated uncompressed (the
@@ -45,6 +48,9 @@ SCENES = {
                "test_every": 8},
 }
 QUICK = {"lego": {"max_width": 160, "views": 2, "budgets": [20, 60]}}
+# The rate term's weights of the RD sweep (fit --lambda-rate; 0 is the main fit itself).
+RATE_LAMBDAS = (3e-5, 1e-4, 3e-4)
+QUICK_RATE_LAMBDAS = (1e-4,)
 # The ablations' fits: reference width and iterations (each its own fit, the reference included).
 ABLATION = {"max_width": 200, "iters": 3000}
 QUICK_ABLATION = {"max_width": 100, "iters": 400}
@@ -147,7 +153,8 @@ def main(argv=None) -> int:
     ab_spec = dict(QUICK_ABLATION if args.quick else ABLATION)
     if args.ablation_iters:
         ab_spec["iters"] = args.ablation_iters
-    est = sum(sum(sp["budgets"]) + 2 * sp["budgets"][-1] for sp in specs.values())
+    n_rate = len(QUICK_RATE_LAMBDAS if args.quick else RATE_LAMBDAS)
+    est = sum(sum(sp["budgets"]) + (2 + n_rate) * sp["budgets"][-1] for sp in specs.values())
     # a rough rate of 20 iterations/s at 200 px, scaling with the pixel count
     ab_fit_s = ab_spec["iters"] / 20.0 * (ab_spec["max_width"] / 200.0) ** 2
     est += sum(ab_fit_s * (1 + len({tuple(sorted(a[1].items())) for a in ablations}) + len(noise_seeds))
@@ -229,6 +236,12 @@ def main(argv=None) -> int:
                 p["id"] = f"ours, fit {main_b:g} s, default encode"
                 p["sweeps"]["fit_budget"] = f"{main_b:g} s"
         points += sw
+        # 4b. the RD sweep: the rate term at the main budget, each fit encoded with the defaults
+        for lam in (QUICK_RATE_LAMBDAS if args.quick else RATE_LAMBDAS):
+            ply, rec = fit(f"rate={lam:g} budget={main_b:g}", main_b, lambda_rate=lam)
+            points.append(encode_point(runner, n, f"ours, fit {main_b:g} s, --lambda-rate {lam:g}, default encode",
+                                       ply, {}, ev, fit=rec, evaluated=evaluated, group="rate", default=False,
+                                       sweeps={"lambda_rate": f"{lam:g}"}))
         # 5. ablations: fixed iterations at the ablation width, each against the default fit of the same settings
         if n in ab_scenes and ablations:
             ab_w, ab_it = ab_spec["max_width"], ab_spec["iters"]

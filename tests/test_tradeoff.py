@@ -301,12 +301,14 @@ def test_encode_sweep_plan_centres_on_the_defaults():
     from proxycodec.codec import EncodeConfig
 
     plan = encode_sweep_plan(quick=True)
-    assert {n for n, _, _ in plan} == {"proxy_ratio", "leaf_sample", "bits", "zstd_level", "predictor_blocks"}
+    assert {n for n, _, _ in plan} == {"proxy_ratio", "leaf_sample", "bits", "zstd_level", "predictor_blocks",
+                                       "entropy"}
     for name, _, knobs in plan:
         assert knobs["use_fitted"] is False
         EncodeConfig(**knobs).check()
     ids = {knob_id(k) for _, _, k in plan}
     assert "encode default (refit)" in ids and "encode proxy_ratio=0.1" in ids
+    assert {"encode entropy=zstd", "encode entropy=model"} <= ids  # the default is "auto"
     with pytest.raises(ProxycodecError, match="unknown sweep"):
         encode_sweep_plan(True, ["nope"])
 

@@ -79,11 +79,12 @@ def encode_sweep_plan(quick: bool, sweeps: Sequence[str] | None = None) -> list[
     d = EncodeConfig()
     if quick:
         grid = {"proxy_ratio": [0.1, 0.3, 0.6], "leaf_sample": [0.05, 0.2, 0.5],
-                "bits": [(6, 8, 8), (8, 8, 8), (10, 8, 8)], "zstd_level": [3, 19], "predictor_blocks": [1, 2]}
+                "bits": [(6, 8, 8), (8, 8, 8), (10, 8, 8)], "zstd_level": [3, 19], "predictor_blocks": [1, 2],
+                "entropy": ["zstd", "model"]}
     else:
         grid = {"proxy_ratio": [0.1, 0.2, 0.3, 0.45, 0.6], "leaf_sample": [0.05, 0.1, 0.2, 0.5],
                 "bits": [(6, 8, 8), (8, 8, 8), (10, 8, 8), (8, 6, 6), (8, 10, 10)],
-                "zstd_level": [3, 9, 19, 22], "predictor_blocks": [0, 1, 2, 4]}
+                "zstd_level": [3, 9, 19, 22], "predictor_blocks": [0, 1, 2, 4], "entropy": ["zstd", "model"]}
     unknown = set(sweeps or ()) - set(grid)
     if unknown:
         raise ProxycodecError(f"unknown sweep(s) {', '.join(sorted(unknown))}; choose from {', '.join(grid)}")
@@ -97,7 +98,7 @@ def encode_sweep_plan(quick: bool, sweeps: Sequence[str] | None = None) -> list[
                 label = f"offsets {v[0]} / features {v[1]} / scalings {v[2]}"
             else:
                 knobs = {name: v}
-                label = f"{v:g}"
+                label = v if isinstance(v, str) else f"{v:g}"
             plan.append((name, label, {"use_fitted": False, **knobs}))
     base = {"use_fitted": False, "distill": False, "proxy_ratio": d.proxy_ratio, "leaf_sample": d.leaf_sample,
             "offset_bits": d.offset_bits, "feature_bits": d.feature_bits, "scaling_bits": d.scaling_bits,
