@@ -425,13 +425,13 @@ class Trainer(TrainingRun):
         self.step_xi = xi  # observe() reads it: densification statistics from xi >= stats_min_xi only
         cam = self.data.cameras[i]
         lam = self.lambda_recon(p) if self.stage >= 2 else 0.0
-        scene, noisy, bits = self.anchors.scene(), None, None
+        scene, rounded, bits = self.anchors.scene(), None, None
         if self.rate is not None:  # the attributes on their quantisation grids, and their rate
             a = self.anchors
-            f_n, o_n, s_n, bits = self.rate(a.features, a.offsets, a.scalings)
-            noisy = f_n, o_n
-            scene = replace(scene, features=f_n, offsets=o_n, scalings=s_n)
-        feats, offs, l_recon = self.leaf_tables(cam.scaled(xi), with_recon=lam != 0.0, noisy=noisy)
+            f_q, o_q, s_q, bits = self.rate(a.features, a.offsets, a.scalings)
+            rounded = f_q, o_q
+            scene = replace(scene, features=f_q, offsets=o_q, scalings=s_q)
+        feats, offs, l_recon = self.leaf_tables(cam.scaled(xi), with_recon=lam != 0.0, rounded=rounded)
         r = render_scene(scene, self.decoder, cam, xi, background=self.bg, backend=c.backend,
                          features=feats, offsets=offs)
         loss = photometric_loss(r.image, gt, c.lambda_dssim)
@@ -446,21 +446,21 @@ class Trainer(TrainingRun):
                 "recon": float(l_recon.detach()),
                 **({} if bits is None else {"bits_per_anchor": float(bits.detach()) / self.anchors.num_anchors})}
 
-    def leaf_tables(self, cam: Camera, with_recon: bool = True, noisy: tuple | None = None
+    def leaf_tables(self, cam: Camera, with_recon: bool = True, rounded: tuple | None = None
                     ) -> tuple[torch.Tensor | None, torch.Tensor | None, torch.Tensor]:
         """Stage 2: the feature (and, with ``predict_offsets``, offset) tables with the visible leaves' rows
         predicted; and L_recon (0 without computing it when ``with_recon`` is False, i.e. its weight is 0: the
-        leaf sample is still drawn, so the random stream does not depend on the weight). ``noisy``: (features,
-        offsets) with quantisation noise (rate training), rendered and fed to the predictor instead."""
+        leaf sample is still drawn, so the random stream does not depend on the weight). ``rounded``: (features,
+        offsets) on their quantisation grids (rate training), rendered and fed to the predictor instead."""
         zero = torch.zeros(())
         if self.stage < 2 or self.predictor is None:
-            return (None, None, zero) if noisy is None else (*noisy, zero)
+            return (None, None, zero) if rounded is None else (*rounded, zero)
         a = self.anchors
         po = self.cfg.predict_offsets
         vis = visible_anchors(a.positions, a.scene().extent_radius().detach(), cam)
         leaf_vis = vis[~self.proxy_mask[vis]]
-        base_f, base_o = noisy if noisy is not None else (a.features, a.offsets)
-        feats, offs = base_f, (base_o if po or noisy is not None else None)
+        base_f, base_o = rounded if rounded is not None else (a.features, a.offsets)
+        feats, offs = base_f, (base_o if po or rounded is not None else None)
         if leaf_vis.numel():
             pred, pred_o = self.predictor.predict(a.positions, base_f, self.nearest, leaf_vis,
                                                   base_o if po else None)

@@ -334,9 +334,9 @@ class TestFit:
         orig = Trainer.leaf_tables
 
         def run(force):
-            def spy(self, cam, with_recon=True):
+            def spy(self, cam, with_recon=True, rounded=None):
                 calls.append(with_recon)
-                return orig(self, cam, True if force else with_recon)
+                return orig(self, cam, True if force else with_recon, rounded)
 
             monkeypatch.setattr(Trainer, "leaf_tables", spy)
             tr = Trainer(data, small_config(iters=20), "tiny")
