@@ -15,7 +15,10 @@ otherwise, and report
     python benchmarks/entropy_model.py SCENE.ply [SCENE2.ply ...] [--dataset ../shared/data/nerf_synthetic/lego
         --max-width 400] [--repeats 3] [--out benchmarks/results/entropy_model]
 
-Writes ``results.json`` (machine, versions, every figure) and ``entropy_model.md`` into ``--out``.
+Writes ``results.json`` (machine, versions, every figure), ``entropy_model.md`` and, with ``--dataset``,
+``rd_curve.png`` (PSNR averaged over 10%..100% against bytes: each scene's containers, zstd and entropy model, and
+the uncompressed PLY + weights) into ``--out``. ``--labels`` names the scenes in the table and the plot (e.g. their
+``--lambda-rate``).
 """
 
 from __future__ import annotations
@@ -40,7 +43,8 @@ GROUPS = {"positions": ("anchors/grid", "anchors/xyz"), "split": ("anchors/proxy
 
 def _cli(*args, timeout=3600) -> float:
     t = time.perf_counter()
-    subprocess.run([sys.executable, "-m", "proxycodec.cli.main", *map(str, args)], check=True, timeout=timeout,
+    subprocess.run([sys.executable, "-c", "from proxycodec.cli.main import main; main()", *map(str, args)],
+                   check=True, timeout=timeout,
                    stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     return time.perf_counter() - t
 
@@ -52,7 +56,7 @@ def _groups(stats: dict) -> dict[str, int]:
         g = next((k for k, pre in GROUPS.items() if any(s["name"].startswith(p) for p in pre)), None)
         if g is None:
             raise KeyError(s["name"])
-        out[g] += s["stored_size"]
+        out[g] += s["stored_bytes"]
     return out
 
 
@@ -74,7 +78,9 @@ def _eval(path: Path, dataset: str, max_width: int, out: Path) -> dict:
 def run_scene(ply: Path, args, work: Path) -> dict:
     from proxycodec import codec
 
-    row: dict = {"scene": str(ply)}
+    from proxycodec.model import weights_path_for
+
+    row: dict = {"scene": str(ply), "uncompressed_bytes": ply.stat().st_size + weights_path_for(ply).stat().st_size}
     if args.dataset:
         row["uncompressed"] = _eval(ply, args.dataset, args.max_width, work / f"{ply.stem}_eval")
     for mode in ("zstd", "model"):
@@ -103,7 +109,7 @@ def table(rows: list[dict]) -> str:
     lines = []
     for row in rows:
         z, m = row["zstd"], row["model"]
-        lines += [f"### {Path(row['scene']).name}", "",
+        lines += [f"### {row.get('label', Path(row['scene']).stem)} ({Path(row['scene']).name})", "",
                   "| section | zstd only (format 2) | entropy model (format 4) |", "|---|---:|---:|"]
         for g in GROUPS:
             lines.append(f"| {g} | {z['groups'][g]:,} | {m['groups'][g]:,} |")
@@ -127,6 +133,31 @@ def table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def rd_plot(rows: list[dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    for mode, marker, name in (("zstd", "s", "zstd only (format 2)"), ("model", "o", "entropy model (format 4)")):
+        pts = sorted((r[mode]["bytes"] / 1e3, r[mode]["eval"]["psnr_avg"], r["label"]) for r in rows)
+        ax.plot([p[0] for p in pts], [p[1] for p in pts], marker=marker, label=name)
+        if mode == "model":
+            for x, y, lab in pts:
+                ax.annotate(lab, (x, y), textcoords="offset points", xytext=(-4, 6), fontsize=7, ha="right")
+    ax.scatter([r["uncompressed_bytes"] / 1e3 for r in rows], [r["uncompressed"]["psnr_avg"] for r in rows],
+               marker="x", color="k", label="uncompressed (PLY + weights)")
+    ax.set_xscale("log")
+    ax.set_xlabel("bytes (kB, log)")
+    ax.set_ylabel("PSNR, average over 10%..100% (dB)")
+    ax.set_title("lego 400 px: rate-distortion")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("scenes", nargs="+", type=Path)
@@ -134,6 +165,9 @@ def main(argv=None) -> int:
     ap.add_argument("--max-width", type=int, default=400)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "entropy_model")
+    ap.add_argument("--labels", default=None, help="comma-separated names of the scenes [default: file stems]")
+    ap.add_argument("--append", action="store_true",
+                    help="keep the rows of an earlier run in --out (a scene measured again replaces its row)")
     args = ap.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     work = args.out / "work"
@@ -144,9 +178,14 @@ def main(argv=None) -> int:
 
     import proxycodec
 
+    labels = args.labels.split(",") if args.labels else [p.stem for p in args.scenes]
     rows = []
-    for ply in args.scenes:
+    if args.append and (args.out / "results.json").is_file():
+        rows = [r for r in json.loads((args.out / "results.json").read_text())["rows"]
+                if r["scene"] not in {str(p) for p in args.scenes}]
+    for ply, label in zip(args.scenes, labels):
         rows.append(run_scene(ply, args, work))
+        rows[-1]["label"] = label
         print(table(rows[-1:]), flush=True)
     res = {"machine": {"platform": platform.platform(), "processor": platform.processor(),
                        "python": platform.python_version(), "cpu_count": __import__("os").cpu_count()},
@@ -155,6 +194,8 @@ def main(argv=None) -> int:
            "seed": 0, "repeats": args.repeats, "rows": rows}
     (args.out / "results.json").write_text(json.dumps(res, indent=1))
     (args.out / "entropy_model.md").write_text(table(rows))
+    if args.dataset:
+        rd_plot(rows, args.out / "rd_curve.png")
     return 0
 
 
