@@ -69,6 +69,40 @@ def _drawn_gaussians(path: Path) -> int:
     return int(statistics.median(len(s.decode_view(c, 1.0)[0].opacities) for c in cams))
 
 
+def dead_slot_bits(path: Path) -> dict:
+    """Where the offsets' bits go: never-drawn slots (``encode --drop-dead-offsets``'s liveness test: opacity <=
+    -0.02 from every sampled viewpoint and resolution) against drawn ones, under the container's own model."""
+    import numpy as np
+
+    from proxycodec import codec, entropy
+    from proxycodec.codec import _live_slots
+    from proxycodec.sections import read_scene_container, stored_anchors
+
+    c = read_scene_container(path)
+    m = c.meta
+    err = ValueError
+    a = stored_anchors(m, dict(c.arrays), err)  # (decodes the stream)
+    F, K = a.features.shape[1], a.offsets.shape[1]
+    bits = {k: m["quant"][k]["bits"] for k in entropy.NETS}
+    ctx = entropy.Context.of(a.positions, a.voxel_size, a.proxy_mask)
+    syms = entropy.decode(m["entropy"], c.arrays, ctx, F, K, bits, err)
+    nets = entropy.unpack_nets(m["entropy"]["nets"], c.arrays, err)
+    lengths = entropy.code_lengths(ctx, nets, syms).offsets.reshape(len(ctx.posn), K, 3).sum(2)  # [M, K]
+    live = _live_slots(codec.decode(path), -0.02)
+    dead = ~live
+    return {"slots": int(live.size), "dead_slots": int(dead.sum()), "dead_share": float(dead.mean()),
+            "offset_bytes_dead": float(lengths[dead].sum() / 8), "offset_bytes_live": float(lengths[live].sum() / 8),
+            "bits_per_dead_slot": float(lengths[dead].mean()) if dead.any() else None,
+            "bits_per_live_slot": float(lengths[live].mean()) if live.any() else None,
+            "live_mask_bound_bytes": float(live.size * _h2(float(dead.mean())) / 8)}
+
+
+def _h2(p: float) -> float:
+    import math
+
+    return 0.0 if p <= 0 or p >= 1 else -(p * math.log2(p) + (1 - p) * math.log2(1 - p))
+
+
 def _eval(path: Path, dataset: str, max_width: int, out: Path) -> dict:
     _cli("eval", path, dataset, "--max-width", max_width, "--res", RES, "-o", out)
     s = json.loads((out / "eval.json").read_text())["summary"]
@@ -98,6 +132,8 @@ def run_scene(ply: Path, args, work: Path) -> dict:
         if "entropy" in meta:
             r["entropy_bytes"] = meta["entropy"]["bytes"]
             r["entropy_zstd_bytes"] = meta["entropy"]["zstd_bytes"]
+            if args.dead_slots:
+                r["dead_slots"] = dead_slot_bits(out)
         r["quant_bits"] = st["quant_bits"]
         if args.dataset:
             r["eval"] = _eval(out, args.dataset, args.max_width, work / f"{ply.stem}_{mode}_eval")
@@ -124,6 +160,11 @@ def table(rows: list[dict]) -> str:
                   f"| encode (s, median) | {z['encode_s']:.1f} | {m['encode_s']:.1f} |",
                   f"| fresh-process decode + render of a 30% view (s, median) | {z['decode_render_30_s']:.2f} | "
                   f"{m['decode_render_30_s']:.2f} |"]
+        if "dead_slots" in m:
+            d = m["dead_slots"]
+            lines.append(f"| never-drawn offset slots: share, bits per slot (drawn: {d['bits_per_live_slot']:.1f}), "
+                         f"offset bytes on them | | {d['dead_share']:.1%}, {d['bits_per_dead_slot']:.1f}, "
+                         f"{d['offset_bytes_dead']:,.0f} (a live mask: >= {d['live_mask_bound_bytes']:,.0f}) |")
         if "uncompressed" in row:
             u = row["uncompressed"]
             lines.append(f"| PSNR avg 10..100% (uncompressed {u['psnr_avg']:.3f}) | {z['eval']['psnr_avg']:.3f} "
@@ -166,6 +207,8 @@ def main(argv=None) -> int:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "entropy_model")
     ap.add_argument("--labels", default=None, help="comma-separated names of the scenes [default: file stems]")
+    ap.add_argument("--dead-slots", action="store_true",
+                    help="also measure the offsets' bits on never-drawn slots (~100 s per scene)")
     ap.add_argument("--append", action="store_true",
                     help="keep the rows of an earlier run in --out (a scene measured again replaces its row)")
     args = ap.parse_args(argv)

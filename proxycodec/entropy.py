@@ -375,6 +375,28 @@ def encode(ctx: Context, nets: dict[str, IntNet], a: Attributes, bits: dict[str,
     return sections, meta, sizes
 
 
+def code_lengths(ctx: Context, nets: dict[str, IntNet], a: Attributes) -> Attributes:
+    """Bits each symbol of ``a`` costs under the integer model and tables (an escape: its index's bits + 32 for the
+    excess word): where the stream's bytes go, symbol by symbol (e.g. the offsets of never-drawn slots)."""
+    t = scale_tables()
+    logp = np.log2(t) - np.log2(t.sum(1, keepdims=True))
+    out = Attributes(np.zeros(a.features.shape), np.zeros(a.scalings.shape), np.zeros(a.offsets.shape))
+
+    def code(attr, rows, cols, m, s):
+        vals = getattr(a, attr)[rows][:, cols]
+        r = vals - m
+        idx = np.clip(r, -(RESID - 1), RESID - 1) + RESID
+        idx[r <= -RESID] = 0
+        idx[r >= RESID] = 2 * RESID
+        b = -logp[s, idx] + 32.0 * ((idx == 0) | (idx == 2 * RESID))
+        getattr(out, attr)[np.ix_(rows, np.arange(getattr(a, attr).shape[1])[cols])] = b
+        return vals
+
+    passes(ctx, _caller(nets), input_shifts(a), Attributes(np.zeros_like(a.features), np.zeros_like(a.scalings),
+                                                            np.zeros_like(a.offsets)), code)
+    return out
+
+
 def decode(meta: dict, sections: dict[str, np.ndarray], ctx: Context, F: int, K: int, bits: dict[str, int], err
            ) -> Attributes:
     """Inverse of ``encode``: the centred symbols, every count bounded by the declared shapes and sections."""
