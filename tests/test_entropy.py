@@ -146,6 +146,10 @@ def test_direct_round_trip_with_escapes_and_wide_symbols():
         assert np.array_equal(getattr(a, k), getattr(b, k)), k
     assert np.array_equal(a.features[mask], b.features[mask])
     assert abs(sum(sizes.values()) - sections[entropy.STREAM].nbytes) <= 8
+    # per-symbol code lengths add up to the stream (escapes: 32 bits each, stored beside it)
+    lengths = entropy.code_lengths(ctx, nets, a)
+    total = (lengths.features[mask].sum() + lengths.scalings.sum() + lengths.offsets.sum()) / 8
+    assert total - 4 * meta["escapes"] == pytest.approx(sections[entropy.STREAM].nbytes, abs=16)
 
 
 @pytest.fixture(scope="module")
