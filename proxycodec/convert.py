@@ -47,10 +47,11 @@ class ConvertConfig:
     run)."""
 
     # [D] resolutions drawn uniformly, random proxies and context 1, not fit's session-8 defaults: with those, lego's
-    # conversion scored 31.50 dB against the source renders instead of 31.89 (SPEC.md section 11)
+    # conversion scored 31.50 dB against the source renders instead of 31.89 (SPEC.md section 11); no rate term
+    # (fit's session-9 default; conversion has not been measured with it)
     fit: FitConfig = field(default_factory=lambda: FitConfig(iters=4000, max_width=800, lr_warmup=0.05,
                                                              xi_full_share=0.0, proxy_selection="random",
-                                                             predictor_context=1))
+                                                             predictor_context=1, lambda_rate=0.0))
     voxel_size: float = 0.0  # <= 0: automatic (choose_voxel)
     keep: float = 0.9  # automatic voxel: share of the Gaussians' weight the anchors' K slots must hold
     # automatic voxel: at most this many anchors. [D] Bytes: a stored anchor costs ~45 B in the container; lego's
