@@ -125,6 +125,16 @@ def test_distillation_is_deterministic(pair, tmp_path):
     assert again.file_bytes == dist.file_bytes
 
 
+def test_distillation_with_the_rate_term_stores_its_learned_grids(pair, tmp_path):
+    """encode --lambda-rate: distillation trains on learned grids, the container quantises on them (the step per
+    channel is the learned one, not the 8-bit range step) and holds fewer attribute bytes."""
+    m, _, dist, _ = pair
+    rated = codec.encode(m, tmp_path / "rate.pxc", **{**QUICK, "lambda_rate": 1e-2, "distill_iters": 60})
+    q, q0 = rated.meta["quant"]["offsets"], dist.meta["quant"]["offsets"]
+    assert q["scale"] != q0["scale"] and q["bits"] <= q0["bits"]
+    assert rated.file_bytes < dist.file_bytes
+
+
 def test_a_scene_without_a_stage2_predictor_is_distilled_by_default(tmp_path, monkeypatch):
     from proxycodec import distill as distill_mod
 
