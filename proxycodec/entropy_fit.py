@@ -88,7 +88,7 @@ def samples(ctx: ent.Context, a: ent.Attributes) -> list[Sample]:
     return out
 
 
-def fit_nets(ctx: ent.Context, a: ent.Attributes, *, hidden: int = 32, iters: int = 1500, lr: float = 3e-3,
+def fit_nets(ctx: ent.Context, a: ent.Attributes, *, hidden: int = 16, iters: int = 1500, lr: float = 3e-3,
              seed: int = 0, batch: int = 16384, progress=None) -> tuple[dict[str, ent.IntNet], dict[str, float]]:
     """Fit the three float nets to the scene's symbols (Adam on the rate), convert them to integer nets.
     Returns the nets and the float model's estimated bytes per net."""
