@@ -502,7 +502,7 @@ def _fit_predictor(cfg: EncodeConfig, predictor: ResidualPredictor | None, pos_s
     else:
         torch.manual_seed(cfg.seed)
         pred = ResidualPredictor(pcfg)
-    nearest = nearest_proxies(pos_sorted, mask, pcfg.context)
+    nearest = nearest_proxies(pos_sorted, mask, pcfg.context, pcfg.ties)
     tcfg = TrainConfig(iters=cfg.predictor_iters, lr=cfg.predictor_lr, lr_final=cfg.predictor_lr / 10,
                        sample_frac=cfg.leaf_sample, seed=cfg.seed)
 
@@ -639,7 +639,7 @@ def _model_from_sections_unchecked(meta: dict, sections: dict[str, np.ndarray], 
     pos_t, feat_t, off_t = torch.from_numpy(pos), torch.from_numpy(a.features), torch.from_numpy(a.offsets)
     leaves = torch.from_numpy(np.flatnonzero(~mask))
     if leaves.numel():
-        nearest = torch.from_numpy(nearest_proxies(pos, mask, pcfg.context))
+        nearest = torch.from_numpy(nearest_proxies(pos, mask, pcfg.context, pcfg.ties))
         with torch.no_grad(), torch_threads(1):  # fixed thread count: the same bits in encoder and decoder
             for s in range(0, leaves.numel(), PREDICT_CHUNK):
                 lv = leaves[s:s + PREDICT_CHUNK]

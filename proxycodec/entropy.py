@@ -231,7 +231,7 @@ class Context:
         lo = c.min(0) if len(c) else np.zeros(3, np.int64)
         span = max(1, int((c.max(0) - lo).max(initial=0))) if len(c) else 1
         posn = (c - lo) * (2 * ACT_MAX) // span - ACT_MAX
-        near = nearest_proxy(positions, mask)
+        near = nearest_proxy(positions, mask, ties="index")  # format 4's rule (encoder and decoder: Morton order)
         rel = np.clip(c - c[near], -REL_CLIP, REL_CLIP) * REL_GAIN
         return Context(posn, rel, near, np.flatnonzero(mask), np.flatnonzero(~mask))
 

@@ -414,7 +414,7 @@ def _scene_from_sections(meta: dict, sections: dict[str, np.ndarray], err) -> Li
     pos, feats, offs, mask = a.positions, a.features, a.offsets, a.proxy_mask
     leaves = np.flatnonzero(~mask)
     if leaves.size:
-        nearest = nearest_proxies(pos, mask, a.predictor_config.context)
+        nearest = nearest_proxies(pos, mask, a.predictor_config.context, a.predictor_config.ties)
         for s in range(0, leaves.size, PREDICT_CHUNK):
             lv = leaves[s:s + PREDICT_CHUNK]
             f_pred, o_pred = predictor.predict(pos, feats, nearest, lv, offs)

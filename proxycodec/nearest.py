@@ -12,24 +12,40 @@ from .errors import ProxycodecError
 BRUTE_FORCE_PAIRS = 16_000_000
 
 
-def _split(positions, proxy_mask) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(float64 positions, proxy indices, leaf indices); a leaf without any proxy is an error."""
+#: How equidistant proxies are ordered. "index": the smaller index in the given array first (files written before
+#: the "ties" field existed; the order then depends on how the anchors are stored, and a trainer's order is not the
+#: container's Morton order). "position": the lexicographically smaller (x, y, z) first, whatever the storage order
+#: (the index only between proxies at the same position). Anchors sit on a voxel grid, so exact ties are common:
+#: on lego (context 4) 9% of the leaves' rows changed with the storage order under "index".
+TIES = ("index", "position")
+
+
+def _split(positions, proxy_mask, ties: str = "position") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(float64 positions, proxy indices in tie-break order, leaf indices); a leaf without any proxy is an error.
+    Every search below prefers the earlier of two equidistant proxies in the returned proxy order."""
+    if ties not in TIES:
+        raise ProxycodecError(f"unknown tie rule {ties!r}; choose from {', '.join(TIES)}")
     p = np.asarray(positions, dtype=np.float64)
     mask = np.asarray(proxy_mask, dtype=bool)
     pidx, leaves = np.flatnonzero(mask), np.flatnonzero(~mask)
     if len(leaves) and not len(pidx):
         raise ProxycodecError("no proxy anchors: every leaf needs a proxy")
+    if ties == "position" and len(pidx) > 1:
+        q = p[pidx]
+        pidx = pidx[np.lexsort((q[:, 2], q[:, 1], q[:, 0]))]  # stable: the same position keeps index order
     return p, pidx, leaves
 
 
-def nearest_proxy(positions, proxy_mask, brute_force_pairs: int = BRUTE_FORCE_PAIRS) -> np.ndarray:
+def nearest_proxy(positions, proxy_mask, ties: str = "position", *, brute_force_pairs: int = BRUTE_FORCE_PAIRS
+                  ) -> np.ndarray:
     """[M] int64: index (into ``positions``) of each anchor's nearest proxy; proxies map to themselves.
 
     Distances are squared Euclidean, computed in float64 as ((a - b)^2).sum() on the given coordinates; ties go to
-    the smallest proxy index. Encoder and decoder call this on the same stored positions, so they always agree.
+    the first proxy in ``ties`` order (``TIES``). Encoder and decoder call this on the same stored positions with
+    the container's rule, so they always agree; with "position" a trainer's anchor order agrees with them too.
     ``positions``: [M, 3] array-like (numpy; ``proxy.nearest_proxy`` also takes tensors).
     """
-    p, pidx, leaves = _split(positions, proxy_mask)
+    p, pidx, leaves = _split(positions, proxy_mask, ties)
     out = np.arange(len(p), dtype=np.int64)
     if len(leaves) == 0:
         return out
@@ -54,7 +70,7 @@ def nearest_proxy(positions, proxy_mask, brute_force_pairs: int = BRUTE_FORCE_PA
     tree = cKDTree(pp)
     k = min(16, len(pidx))
     _, cand = tree.query(p[leaves], k=k)
-    cand = np.sort(cand.reshape(len(leaves), k), axis=1)  # ascending proxy index
+    cand = np.sort(cand.reshape(len(leaves), k), axis=1)  # ascending in the tie-break order
     d2 = ((pp[cand] - p[leaves][:, None, :]) ** 2).sum(-1)  # [L, k], the same formula as above
     best = pidx[cand[np.arange(len(leaves)), np.argmin(d2, axis=1)]]
     # When even the k-th candidate ties with the best, more ties may exist beyond it: resolve those exhaustively.
@@ -65,21 +81,22 @@ def nearest_proxy(positions, proxy_mask, brute_force_pairs: int = BRUTE_FORCE_PA
     return out
 
 
-def nearest_proxies(positions, proxy_mask, k: int, brute_force_pairs: int = BRUTE_FORCE_PAIRS) -> np.ndarray:
+def nearest_proxies(positions, proxy_mask, k: int, ties: str = "position", *,
+                    brute_force_pairs: int = BRUTE_FORCE_PAIRS) -> np.ndarray:
     """[M, k] int64: each leaf's ``k`` nearest proxies, nearest first (column 0 is ``nearest_proxy``); a proxy's
-    row holds itself k times. Order: squared float64 distance as in ``nearest_proxy``, ties to the smaller proxy
-    index; ``k`` larger than the number of proxies repeats the farthest one."""
+    row holds itself k times. Order: squared float64 distance as in ``nearest_proxy``, ties by ``ties``
+    (``TIES``); ``k`` larger than the number of proxies repeats the farthest one."""
     if k == 1:
-        return nearest_proxy(positions, proxy_mask, brute_force_pairs)[:, None]
-    p, pidx, leaves = _split(positions, proxy_mask)
+        return nearest_proxy(positions, proxy_mask, ties, brute_force_pairs=brute_force_pairs)[:, None]
+    p, pidx, leaves = _split(positions, proxy_mask, ties)
     out = np.repeat(np.arange(len(p), dtype=np.int64)[:, None], k, axis=1)
     if len(leaves) == 0:
         return out
     pp = p[pidx]
     kk = min(k, len(pidx))
 
-    def pick(cand: np.ndarray, d2: np.ndarray) -> np.ndarray:  # cand [l, c] proxy positions in pidx, ascending
-        order = np.argsort(d2, axis=1, kind="stable")[:, :kk]  # stable: equal distances keep ascending index
+    def pick(cand: np.ndarray, d2: np.ndarray) -> np.ndarray:  # cand [l, c] places in pidx, ascending
+        order = np.argsort(d2, axis=1, kind="stable")[:, :kk]  # stable: equal distances keep the tie-break order
         sel = pidx[np.take_along_axis(cand, order, 1)]
         return np.concatenate([sel, np.repeat(sel[:, -1:], k - kk, 1)], 1) if kk < k else sel
 

@@ -5,7 +5,8 @@
   picked by a greedy k-median within the cell (ours: leaves closer to their proxies). Deterministic for a seed and
   independent of the order the anchors come in (each anchor's random key is drawn in lexicographic position order).
 - ``nearest_proxy``: for every anchor, the index of its nearest proxy (a proxy maps to itself). Ties are broken
-  explicitly (smallest squared distance, then smallest index) so encoder and decoder always agree.
+  explicitly (smallest squared distance, then the predictor configuration's rule: the smaller position, or for
+  files written before that rule, the smaller index) so trainer, encoder and decoder always agree.
 - ``ResidualPredictor``: [f_k (F), PE(log distance), PE(unit direction proxy->leaf)] -> encoder -> residual MLP blocks
   -> delta (F, plus 3K offset deltas when it also predicts offsets). Prediction = proxy value + delta. The head starts
   at zero, so an untrained predictor is exactly the proxy-copy baseline.
@@ -163,17 +164,18 @@ def _spread_keys(p: np.ndarray, cell: np.ndarray, counts: np.ndarray, starts: np
 BRUTE_FORCE_PAIRS = _nearest.BRUTE_FORCE_PAIRS
 
 
-def nearest_proxies(positions, proxy_mask, k: int = 1) -> np.ndarray:
-    """[M, k] int64: each anchor's ``k`` nearest proxies, nearest first (``nearest.nearest_proxies``)."""
+def nearest_proxies(positions, proxy_mask, k: int = 1, ties: str = "position") -> np.ndarray:
+    """[M, k] int64: each anchor's ``k`` nearest proxies, nearest first (``nearest.nearest_proxies``; ``ties``: a
+    predictor configuration's rule)."""
     p = positions.detach().cpu().numpy() if isinstance(positions, torch.Tensor) else positions
-    return _nearest.nearest_proxies(p, proxy_mask, k, BRUTE_FORCE_PAIRS)
+    return _nearest.nearest_proxies(p, proxy_mask, k, ties, brute_force_pairs=BRUTE_FORCE_PAIRS)
 
 
-def nearest_proxy(positions, proxy_mask) -> np.ndarray:
+def nearest_proxy(positions, proxy_mask, ties: str = "position") -> np.ndarray:
     """[M] int64: index (into ``positions``, an array or a tensor) of each anchor's nearest proxy; proxies map to
-    themselves. Ties go to the smallest proxy index (``nearest.nearest_proxy`` has the details)."""
+    themselves. Ties go to the first proxy in ``ties`` order (``nearest.nearest_proxy`` has the details)."""
     p = positions.detach().cpu().numpy() if isinstance(positions, torch.Tensor) else positions
-    return _nearest.nearest_proxy(p, proxy_mask, BRUTE_FORCE_PAIRS)
+    return _nearest.nearest_proxy(p, proxy_mask, ties, brute_force_pairs=BRUTE_FORCE_PAIRS)
 
 
 # ---------------------------------------------------------------------------------------------- predictor
@@ -332,6 +334,7 @@ class ProxyLeafConfig:
     scene_radius: float = 1.0
     kind: str = "proxy-leaf-mlp"
     predict_offsets: bool = False  # never: the ablation concerns features only
+    ties: str = "position"  # equidistant proxies (``PredictorConfig.ties``)
 
     def __post_init__(self) -> None:
         for k in ("feat_dim", "n_offsets", "hidden"):
@@ -342,6 +345,8 @@ class ProxyLeafConfig:
                 raise ProxycodecError(f"predictor {k} = {getattr(self, k)} is out of range")
         if self.kind != "proxy-leaf-mlp" or self.predict_offsets:
             raise ProxycodecError("a Proxy&Leaf MLP predicts features only")
+        if self.ties not in _nearest.TIES:
+            raise ProxycodecError(f"predictor ties = {self.ties!r}: must be one of {', '.join(_nearest.TIES)}")
         if not (math.isfinite(self.scene_radius) and self.scene_radius > 0):
             raise ProxycodecError(f"predictor scene_radius must be positive, got {self.scene_radius}")
 
@@ -360,6 +365,7 @@ class ProxyLeafConfig:
             kw = {k: d[k] for k in ProxyLeafConfig.__dataclass_fields__ if k in d}
             if "scene_center" in kw:
                 kw["scene_center"] = tuple(float(v) for v in kw["scene_center"])
+            kw.setdefault("ties", "index")  # written before the field existed
             return ProxyLeafConfig(**kw)
         except (TypeError, ValueError) as e:
             if isinstance(e, ProxycodecError):
@@ -498,7 +504,7 @@ def train_predictor(
     mask = torch.as_tensor(np.asarray(proxy_mask, dtype=bool))
     context = 1 if isinstance(predictor, ProxyLeafMLP) else cfg.context
     if nearest is None:
-        nearest = nearest_proxies(positions, mask.numpy(), context)
+        nearest = nearest_proxies(positions, mask.numpy(), context, cfg.ties)
     nearest = torch.as_tensor(np.asarray(nearest), dtype=torch.long)
     leaves = (~mask).nonzero().squeeze(1)
     positions = positions.detach().float()

@@ -133,10 +133,11 @@ class FeatureField:
         pos = torch.cat([self.proxy_positions, q])
         feats = torch.cat([self.proxy_features, torch.zeros(N, self.feat_dim)])
         offs = torch.cat([self.proxy_offsets, torch.zeros((N,) + tuple(self.proxy_offsets.shape[1:]))])
-        context = int(getattr(getattr(self.predictor, "config", None), "context", 1))
+        pcfg = getattr(self.predictor, "config", None)
+        context, ties = int(getattr(pcfg, "context", 1)), getattr(pcfg, "ties", "index")
         mask = np.zeros(P + N, dtype=bool)
         mask[:P] = True  # the proxies, in their stored order: ties go to the same proxy as in decoding
-        nearest = torch.from_numpy(nearest_proxies(pos.numpy(), mask, context))
+        nearest = torch.from_numpy(nearest_proxies(pos.numpy(), mask, context, ties))
         with torch.no_grad(), torch_threads(1):  # fixed thread count, as the decoder regenerates leaves
             for s in range(0, N, PREDICT_CHUNK):
                 rows = torch.arange(P + s, P + min(N, s + PREDICT_CHUNK))

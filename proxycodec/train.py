@@ -511,10 +511,14 @@ class Trainer(TrainingRun):
         a = self.anchors
         self.proxy_mask = torch.from_numpy(np.asarray(mask, dtype=bool))
         ctx = self.cfg.predictor_context if self.cfg.predictor == "residual" else 1
-        self.nearest = torch.from_numpy(nearest_proxies(a.positions, mask, ctx)).long()  # [M, ctx]
-        self.leaves = (~self.proxy_mask).nonzero().squeeze(1)
         if self.predictor is None:
             self.predictor = predictor_from_json(self._predictor_config().to_json())
+        elif self.predictor.config.ties != "position":
+            # a predictor from a file written before the rule (distillation's start): it trains on from here, so it
+            # takes the rule under which the trainer's anchor order and the container's give the same neighbours
+            self.predictor.config = replace(self.predictor.config, ties="position")
+        self.nearest = torch.from_numpy(nearest_proxies(a.positions, mask, ctx, "position")).long()  # [M, ctx]
+        self.leaves = (~self.proxy_mask).nonzero().squeeze(1)
         for k, p in self.predictor.named_parameters():
             self.opt.add(f"predictor.{k}", p)
         self.stage = 2

@@ -161,17 +161,17 @@ class TestNearestProxy:
     def test_matches_brute_force_with_ties_to_smallest_index(self, seed):
         p = grid_points(300, size=(10, 10, 3), seed=seed)  # a grid: equidistant proxies everywhere
         mask = select_proxies(p, 0.15, 0.3, seed)
-        assert np.array_equal(nearest_proxy(p, mask), self.brute(p, mask))
+        assert np.array_equal(nearest_proxy(p, mask, "index"), self.brute(p, mask))
 
-    @pytest.mark.parametrize("seed", [0, 1])
-    def test_kd_tree_path_equals_exhaustive_path(self, seed, monkeypatch):
+    @pytest.mark.parametrize("seed,ties", [(0, "index"), (1, "index"), (0, "position"), (1, "position")])
+    def test_kd_tree_path_equals_exhaustive_path(self, seed, ties, monkeypatch):
         import proxycodec.proxy as proxy
 
         p = grid_points(400, size=(10, 10, 4), seed=seed)
         mask = select_proxies(p, 0.15, 0.3, seed)
-        exhaustive = nearest_proxy(p, mask)
+        exhaustive = nearest_proxy(p, mask, ties)
         monkeypatch.setattr(proxy, "BRUTE_FORCE_PAIRS", 0)
-        assert np.array_equal(nearest_proxy(p, mask), exhaustive)
+        assert np.array_equal(nearest_proxy(p, mask, ties), exhaustive)
 
     def test_many_ties_beyond_the_candidate_list(self, monkeypatch):
         import proxycodec.proxy as proxy
@@ -182,7 +182,7 @@ class TestNearestProxy:
         ring = np.c_[np.cos(ang), np.sin(ang), np.zeros(24)]
         p = np.concatenate([ring, [[0.0, 0.0, 0.0]]])
         mask = np.r_[np.ones(24, bool), False]
-        assert np.array_equal(nearest_proxy(p, mask), self.brute(p, mask))
+        assert np.array_equal(nearest_proxy(p, mask, "index"), self.brute(p, mask))
 
     @pytest.mark.parametrize("k", [2, 3, 5])
     def test_k_nearest_in_distance_then_index_order_on_both_paths(self, k, monkeypatch):
@@ -191,7 +191,7 @@ class TestNearestProxy:
 
         p = grid_points(300, size=(10, 10, 3), seed=k)  # a grid: many equidistant proxies
         mask = select_proxies(p, 0.15, 0.3, k)
-        got = nearest_proxies(p, mask, k)
+        got = nearest_proxies(p, mask, k, "index")
         pidx = np.flatnonzero(mask)
         for i in range(len(p)):
             if mask[i]:
@@ -199,13 +199,51 @@ class TestNearestProxy:
                 continue
             d = ((p[pidx].astype(np.float64) - p[i]) ** 2).sum(1)
             assert np.array_equal(got[i], pidx[np.lexsort((pidx, d))][:k]), i
-        assert np.array_equal(got[:, 0], nearest_proxy(p, mask))
+        assert np.array_equal(got[:, 0], nearest_proxy(p, mask, "index"))
         monkeypatch.setattr(proxy, "BRUTE_FORCE_PAIRS", 0)
-        assert np.array_equal(nearest_proxies(p, mask, k), got)
+        assert np.array_equal(nearest_proxies(p, mask, k, "index"), got)
         few = np.zeros(len(p), bool)
         few[[3, 7]] = True  # k beyond the number of proxies: the farthest one repeats
         two = nearest_proxies(p, few, 4)
         assert set(two[0]) <= {3, 7} and (two[~few][:, 2:] == two[~few][:, 1:2]).all()
+
+    @pytest.mark.parametrize("k", [1, 4])
+    def test_position_ties_follow_the_position_and_not_the_storage_order(self, k, monkeypatch):
+        """With ties="position" equidistant proxies are ordered by (x, y, z): the neighbours of every anchor are the
+        same whatever order the anchors are stored in (a trainer's order and the container's Morton order), on
+        both search paths; with "index" (files written before the rule) they are not, on a grid."""
+        import proxycodec.proxy as proxy
+        from proxycodec.proxy import nearest_proxies
+
+        p = grid_points(300, size=(10, 10, 3), seed=k)
+        mask = select_proxies(p, 0.15, 0.3, k)
+        got = nearest_proxies(p, mask, k, "position")
+        pidx = np.flatnonzero(mask)
+        q = p[pidx].astype(np.float64)
+        for i in np.flatnonzero(~mask):  # reference: distance, then x, then y, then z
+            d = ((q - p[i]) ** 2).sum(1)
+            assert np.array_equal(got[i], pidx[np.lexsort((q[:, 2], q[:, 1], q[:, 0], d))][:k]), i
+        perm = np.random.default_rng(k).permutation(len(p))
+        moved = nearest_proxies(p[perm], mask[perm], k, "position")
+        assert np.array_equal(perm[moved], got[perm])
+        moved_index = nearest_proxies(p[perm], mask[perm], k, "index")
+        assert not np.array_equal(perm[moved_index], nearest_proxies(p, mask, k, "index")[perm])
+        monkeypatch.setattr(proxy, "BRUTE_FORCE_PAIRS", 0)
+        assert np.array_equal(nearest_proxies(p, mask, k, "position"), got)
+        with pytest.raises(ProxycodecError, match="tie rule"):
+            nearest_proxies(p, mask, k, "nearest")
+
+    def test_predictor_configurations_written_before_the_tie_rule_read_as_index(self):
+        from proxycodec.proxy import PredictorConfig, ProxyLeafConfig
+
+        assert PredictorConfig().ties == "position" and PredictorConfig.from_json(PredictorConfig().to_json()).ties \
+            == "position"
+        old = {k: v for k, v in PredictorConfig(context=4).to_json().items() if k != "ties"}
+        assert PredictorConfig.from_json(old).ties == "index"
+        old_pl = {k: v for k, v in ProxyLeafConfig().to_json().items() if k != "ties"}
+        assert ProxyLeafConfig.from_json(old_pl).ties == "index"
+        with pytest.raises(ProxycodecError, match="ties"):
+            PredictorConfig(ties="random")
 
     def test_proxies_map_to_themselves_and_no_proxy_is_an_error(self):
         p = grid_points(50)
