@@ -145,7 +145,8 @@ def table(rows: list[dict]) -> str:
     lines = []
     for row in rows:
         z, m = row["zstd"], row["model"]
-        lines += [f"### {row.get('label', Path(row['scene']).stem)} ({Path(row['scene']).name})", "",
+        lines += [f"### {row.get('label', Path(row['scene']).stem)} ({Path(row['scene']).name}"
+                  f"{', ' + row['curve'] if row.get('curve') else ''})", "",
                   "| section | zstd only (format 2) | entropy model (format 4) |", "|---|---:|---:|"]
         for g in GROUPS:
             lines.append(f"| {g} | {z['groups'][g]:,} | {m['groups'][g]:,} |")
@@ -180,13 +181,19 @@ def rd_plot(rows: list[dict], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(7, 4.5))
-    for mode, marker, name in (("zstd", "s", "zstd only (format 2)"), ("model", "o", "entropy model (format 4)")):
-        pts = sorted((r[mode]["bytes"] / 1e3, r[mode]["eval"]["psnr_avg"], r["label"]) for r in rows)
-        ax.plot([p[0] for p in pts], [p[1] for p in pts], marker=marker, label=name)
-        if mode == "model":
-            for x, y, lab in pts:
-                ax.annotate(lab, (x, y), textcoords="offset points", xytext=(-4, 6), fontsize=7, ha="right")
+    fig, ax = plt.subplots(figsize=(7.5, 4.5))
+    # rows with a "curve" key (e.g. fits made with older code) form their own, fainter curve
+    curves = list(dict.fromkeys(r.get("curve", "") for r in rows))
+    for mode, marker, name, color in (("zstd", "s", "zstd only (format 2)", "C0"),
+                                      ("model", "o", "entropy model (format 4)", "C1")):
+        for c in curves:
+            pts = sorted((r[mode]["bytes"] / 1e3, r[mode]["eval"]["psnr_avg"], r["label"]) for r in rows
+                         if r.get("curve", "") == c)
+            ax.plot([p[0] for p in pts], [p[1] for p in pts], marker=marker, color=color, alpha=0.4 if c else 1.0,
+                    ls="--" if c else "-", label=name + (f", {c}" if c else ""))
+            if mode == "model":
+                for x, y, lab in pts:
+                    ax.annotate(lab, (x, y), textcoords="offset points", xytext=(8, -3), fontsize=7, ha="left")
     ax.scatter([r["uncompressed_bytes"] / 1e3 for r in rows], [r["uncompressed"]["psnr_avg"] for r in rows],
                marker="x", color="k", label="uncompressed (PLY + weights)")
     ax.set_xscale("log")

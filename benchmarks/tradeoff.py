@@ -1,6 +1,6 @@
 """What accuracy costs in time and bytes (issue #7): one command for every table and plot.
 
-    python benchmarks/tradeoff.py                       # full: lego (400 px) + bonsai (800 px), <= 3 h on 2 cores
+    python benchmarks/tradeoff.py                       # full: lego (400 px) + bonsai (800 px), ~4.5 h on 2 cores
     python benchmarks/tradeoff.py --quick               # CI smoke: lego at 160 px, tiny budgets, <= 20 min
     python benchmarks/tradeoff.py --scenes lego --out benchmarks/results/tradeoff --budget-scale 0.5
 
@@ -23,6 +23,10 @@ each step finishes, a re-run resumes):
    wall-time budget did not: two seeds of the default differed by 2.2 dB), each evaluated uncompressed (the
    PLY holds the leaves' predicted features) against the default fit of the same settings, next to the paper's
    figure; a second seed of the default measures the run-to-run noise.
+
+Wall time on the 2-core machine: the steps of the last full run took 11,024 s (fits 9,896 s; the ablations, fits and evaluations, 4,726 s of
+them), before the RD sweep added 4,500 s of fits: ~4.5 h from scratch, more than one 3-hour working session.
+``--no-ablations`` or ``--scenes lego`` shorten it; a re-run without ``--fresh`` resumes from the finished steps.
 
 Outputs in ``--out``: ``results.json`` (machine, versions, seed, load averages, every step and point), ``tradeoff.md``
 (tables), ``psnr_vs_bytes.png`` (Pareto front marked, default highlighted), ``psnr_vs_time.png``,

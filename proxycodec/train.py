@@ -167,7 +167,7 @@ class FitConfig:
     # attributes; they are rendered rounded to a learned grid per attribute channel (straight-through), exported in
     # the scene metadata as ``quant_steps``, which encode quantises on. 0: off (training as before).
     # [D] 1e-4 by default (issue 17): on lego (400 px, 10,220 iterations) the container is 13.6x smaller than PLY +
-    # weights at 0.15 dB below the fitted scene, against 6.9x without the term (5e-5: 11.4x); the fitted scene itself scores
+    # weights at 0.002 dB below the fitted scene, against 6.9x without the term (5e-5: 11.4x); the fitted scene itself scores
     # 1.22 dB below a fit without it (SPEC.md section 4, "Entropy coding"): --lambda-rate 0 for the most quality.
     lambda_rate: float = 1e-4
     lr_quant_step: float = 2e-3  # Adam on the log of each channel's step
