@@ -44,6 +44,8 @@ def _stderr(msg: str) -> None:
                     "(fit --predict-offsets), else store].")
 @encode_option("--drop-dead-offsets/--keep-dead-offsets", show_default=True,
                help="Store the offsets of neural Gaussians that are never drawn as 0 (-1.5% bytes, ~9x encode time).")
+@encode_option("--predictor-context", show_default=True, type=click.IntRange(1, 8),
+               help="Proxies the predictor sees per leaf (the nearest, plus context), when not as fitted.")
 @encode_option("--predictor-iters", show_default=True, type=int)
 @encode_option("--leaf-sample", show_default=True, type=float,
                help="Fraction of the leaves in each predictor iteration (L_recon).")
@@ -76,7 +78,8 @@ def _stderr(msg: str) -> None:
 @click.option("--json", "as_json", is_flag=True, help="Print the encode report as JSON on stdout.")
 @user_errors
 def encode(scene, out, weights, proxy_ratio, proxy_selection, cell_size, feature_bits, offset_bits, scaling_bits,
-           weights_dtype, predict_offsets, max_cameras, drop_dead_offsets, predictor_iters, leaf_sample, zstd_level,
+           weights_dtype, predict_offsets, max_cameras, drop_dead_offsets, predictor_context, predictor_iters, leaf_sample,
+           zstd_level,
            entropy, entropy_iters, lambda_rate, learned_steps, seed,
            refit_predictor, distill, distill_iters, distill_time_budget, distill_views, images, keep_anchor_scene,
            voxel_size, views, view_size, background, max_width, as_json) -> None:
@@ -99,7 +102,7 @@ def encode(scene, out, weights, proxy_ratio, proxy_selection, cell_size, feature
     knobs = dict(proxy_ratio=proxy_ratio, proxy_selection=proxy_selection, cell_size=cell_size,
                  feature_bits=feature_bits, offset_bits=offset_bits, scaling_bits=scaling_bits,
                  weights_dtype=weights_dtype, predict_offsets=predict_offsets, max_cameras=max_cameras,
-                 predictor_iters=predictor_iters, leaf_sample=leaf_sample, zstd_level=zstd_level, seed=seed,
+                 predictor_context=predictor_context, predictor_iters=predictor_iters, leaf_sample=leaf_sample, zstd_level=zstd_level, seed=seed,
                  entropy=entropy, entropy_iters=entropy_iters, lambda_rate=lambda_rate, learned_steps=learned_steps)
     if not p.is_dir() and is_inria_ply(p):
         from ..convert import convert_and_encode
