@@ -42,6 +42,15 @@ def container(tmp_path_factory):
     return path
 
 
+@pytest.fixture(scope="module")
+def container_context1(tmp_path_factory):
+    """The paper's predictor, which sees the nearest proxy only (encode's default sees 4): its zero-offset answer
+    at a proxy has the closed form the test below writes out."""
+    path = tmp_path_factory.mktemp("query1") / "tiny1.pxc"
+    codec.encode(film_model(), path, **{**FAST, "predictor_iters": 40, "predictor_context": 1})
+    return path
+
+
 def embedded(model: SceneModel, xi: float, rows=None) -> np.ndarray:
     s = model.scene
     rows = slice(None) if rows is None else torch.as_tensor(rows)
@@ -65,8 +74,8 @@ def test_at_leaves_the_query_is_the_decoded_leaf_and_film_is_applied(container):
     assert np.abs(query_features(container, pos[leaves], 0.1) - query_features(container, pos[leaves], 1.0)).max() > 0.01
 
 
-def test_at_proxies_the_stored_feature_or_the_predictor_at_zero_offset(container):
-    cs = codec.load(container)
+def test_at_proxies_the_stored_feature_or_the_predictor_at_zero_offset(container_context1):
+    cs = codec.load(container_context1)
     decoded = cs.to_model()
     mask = decoded.scene.metadata["proxy_mask"]
     prox = np.flatnonzero(mask)
@@ -99,11 +108,13 @@ def test_between_anchors_the_nearest_proxy_decides(container):
     # the same as the predictor run on the points as if they were leaves of the decoded scene
     allpos = np.concatenate([s.positions.numpy(), pts])
     m = np.concatenate([mask, np.zeros(len(pts), bool)])
-    near = torch.from_numpy(nearest_proxies(allpos, m, 1))
+    pred = codec.load(container).predictor()
+    assert pred.config.context == 4  # encode's default: the points' context proxies are found as the leaves' are
+    near = torch.from_numpy(nearest_proxies(allpos, m, pred.config.context, pred.config.ties))
     feats = torch.cat([s.features, torch.zeros(len(pts), 32)])
     offs = torch.cat([s.offsets, torch.zeros(len(pts), 10, 3)])
     with torch.no_grad():
-        want = codec.load(container).predictor().predict(torch.from_numpy(allpos), feats, near,
+        want = pred.predict(torch.from_numpy(allpos), feats, near,
                                                            torch.arange(len(mask), len(allpos)), offs)[0]
     np.testing.assert_allclose(raw, want.numpy(), rtol=0, atol=2e-6)
     # points in the same place give the same answer, whatever else is queried with them (and in any order)
