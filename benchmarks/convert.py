@@ -23,6 +23,7 @@ Outputs in ``--out`` (default ``benchmarks/results/convert``): ``results.json`` 
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
 from pathlib import Path
@@ -54,6 +55,9 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default=None)
     ap.add_argument("--fresh", action="store_true", help="Ignore earlier results.")
     ap.add_argument("--no-spz", action="store_true")
+    ap.add_argument("--fit", action="append", default=[], metavar="KEY=VALUE",
+                    help="Override a field of the conversion's FitConfig (JSON value, else a string), e.g. "
+                         "--fit proxy_selection=spread --fit predictor_context=4.")
     args = ap.parse_args(argv)
     sys.path.insert(0, str(REPO))
     from proxycodec.bench import Runner, machine_info, versions
@@ -68,14 +72,20 @@ def main(argv=None) -> int:
             print(f"error: --input {name}={path}: " + ("no such file" if name in SCENES else "unknown scene"),
                   file=sys.stderr)
             return 2
+    try:
+        overrides = _fit_overrides(args.fit)
+    except ValueError as e:
+        print(f"error: --fit: {e}", file=sys.stderr)
+        return 2
     out = Path(args.out or REPO / "benchmarks" / "results" / ("convert_quick" if args.quick else "convert"))
     meta = {"kind": "proxycodec.bench.convert", "seed": SEED, "quick": args.quick, "machine": machine_info(),
-            "versions": versions(), "resolutions": RESOLUTIONS}
+            "versions": versions(), "resolutions": RESOLUTIONS,
+            "fit_overrides": overrides}
     run = Runner(out, meta, fresh=args.fresh)
     rows = {}
     for name in names:
         sc = {**SCENES[name], **(QUICK.get(name, {}) if args.quick else {})}
-        rows[name] = _scene(run, name, sc, inputs.get(name), not args.no_spz)
+        rows[name] = _scene(run, name, sc, inputs.get(name), not args.no_spz, overrides)
     run.finish()
     report = _report(run, rows)
     (out / "convert.md").write_text(report)
@@ -84,7 +94,26 @@ def main(argv=None) -> int:
     return 0
 
 
-def _scene(run, name: str, sc: dict, given: str | None, spz: bool) -> dict:
+def _fit_overrides(pairs: list[str]) -> dict:
+    """``["proxy_selection=spread", "predictor_context=4"]`` -> FitConfig fields (checked against FitConfig)."""
+    from dataclasses import fields
+
+    from proxycodec.train import FitConfig
+
+    known = {f.name for f in fields(FitConfig)}
+    out = {}
+    for pair in pairs:
+        key, sep, value = pair.partition("=")
+        if not sep or key not in known:
+            raise ValueError(f"{pair!r}: expected KEY=VALUE with KEY a FitConfig field")
+        try:
+            out[key] = json.loads(value)
+        except json.JSONDecodeError:
+            out[key] = value
+    return out
+
+
+def _scene(run, name: str, sc: dict, given: str | None, spz: bool, overrides: dict | None = None) -> dict:
     from proxycodec.formats.datasets import load_dataset
     from proxycodec.scaffold_gs import write_cameras_json
 
@@ -101,7 +130,7 @@ def _scene(run, name: str, sc: dict, given: str | None, spz: bool) -> dict:
     else:
         rec["explicit"] = run.step(f"{name}/3dgs fit", "explicit", {
             "dataset": ds, "max_width": mw, "test_every": 8, "out": str(ply),
-            "config": {"iters": sc["explicit_iters"], "time_budget": None, "seed": SEED, "log_every": 30.0}},
+            "config": {"iters": sc["explicit_iters"], "time_budget": None, "seed": SEED, "log_every": 30.0, **(overrides or {})}},
             outputs=[ply])
     if not ply.exists():
         return rec
@@ -124,7 +153,7 @@ def _scene(run, name: str, sc: dict, given: str | None, spz: bool) -> dict:
     container = work / "converted.pxc"
     keep = work / "converted_anchors.ply"
     conv = {"background": bg, "fit": {"iters": sc["convert_iters"], "max_width": mw, "seed": SEED,
-                                      "log_every": 30.0}}
+                                      "log_every": 30.0, **(overrides or {})}}
     rec["convert"] = run.step(f"{name}/convert + encode", "convert", {
         "ply": str(ply), "out": str(container), "keep": str(keep), "convert": conv}, outputs=[container],
         timeout=4 * 3600)

@@ -292,3 +292,17 @@ def test_the_library_encode_points_a_3dgs_ply_to_the_conversion(tmp_path):
     write_inria_ply(tmp_path / "g.ply", _ball(50))
     with pytest.raises(ProxycodecError, match="`proxycodec encode` converts it first"):
         codec.encode(tmp_path / "g.ply", tmp_path / "g.pxc")
+
+
+def test_the_benchmark_converts_with_conversion_s_own_fit_settings_like_the_cli():
+    """benchmarks/convert.py passes a few fit fields; the rest must be conversion's pins (random proxies, context 1,
+    no rate term), as `proxycodec encode PLY` uses, not FitConfig's defaults."""
+    from proxycodec.bench.steps import convert_config
+    from proxycodec.cli.convert import make_config
+
+    cli_cfg = make_config(300, None, 0, 0.0, 64, 400, "white", 100)
+    bench = convert_config({"background": [1.0, 1.0, 1.0], "fit": {"iters": 300, "max_width": 100, "seed": 0}})
+    assert bench == cli_cfg
+    assert bench.fit.proxy_selection == "random" and bench.fit.predictor_context == 1 and bench.fit.lambda_rate == 0
+    spread = convert_config({"fit": {"proxy_selection": "spread", "predictor_context": 4}})
+    assert (spread.fit.proxy_selection, spread.fit.predictor_context, spread.fit.lr_warmup) == ("spread", 4, 0.05)

@@ -173,14 +173,21 @@ def _step_spz(a: dict) -> dict:
             "node_peak_rss_mb": _rss_mb(resource.RUSAGE_CHILDREN)}
 
 
+def convert_config(d: dict):
+    """The ``ConvertConfig`` of a step's JSON: its ``fit`` fields replace those of conversion's own ``FitConfig``
+    (as the CLI does), not ``FitConfig``'s defaults."""
+    from ..convert import ConvertConfig, replace_fit
+
+    c = {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
+    fit = {k: tuple(v) if isinstance(v, list) else v for k, v in c.pop("fit", {}).items()}
+    return replace_fit(ConvertConfig(**c), **fit)
+
+
 def _step_convert(a: dict) -> dict:
     """``proxycodec encode SPLATS.ply --keep-anchor-scene``: convert an INRIA PLY, then encode its anchor scene."""
-    from ..convert import ConvertConfig, convert_and_encode
-    from ..train import FitConfig
+    from ..convert import convert_and_encode
 
-    c = dict(a["convert"])
-    fit = FitConfig.from_json(c.pop("fit", {}))
-    cfg = ConvertConfig(fit=fit, **{k: tuple(v) if isinstance(v, list) else v for k, v in c.items()})
+    cfg = convert_config(a["convert"])
     log = lambda s: print(s, file=sys.stderr, flush=True)  # noqa: E731
     t0 = time.perf_counter()
     conv, rep = convert_and_encode(a["ply"], a["out"], cfg, keep=a.get("keep"), log=log)
