@@ -42,20 +42,19 @@ __all__ = ["ConvertConfig", "ConvertResult", "VoxelChoice", "anchors_from_gaussi
 @dataclass(frozen=True)
 class ConvertConfig:
     """A conversion. ``fit``: the training run against the PLY's renders (its defaults below: 4000 iterations,
-    cameras.json's views downscaled to 800 px, every learning rate ramped up over the first 5% since the run starts
-    from a scene that already looks right; the anchor set grows and is pruned until stage 2 starts at half the
+    cameras.json's views downscaled to 800 px; the anchor set grows and is pruned until stage 2 starts at half the
     run)."""
 
-    # [D] resolutions drawn uniformly, random proxies and context 1, not fit's session-8 defaults: with those, lego's
-    # conversion scored 31.50 dB against the source renders instead of 31.89 (SPEC.md section 11); no rate term
-    # (fit's session-9 default; conversion has not been measured with it)
-    fit: FitConfig = field(default_factory=lambda: FitConfig(iters=4000, max_width=800, lr_warmup=0.05,
-                                                             xi_full_share=0.0, proxy_selection="random",
-                                                             predictor_context=1, lambda_rate=0.0))
+    # [D] measured on lego's PLY, 2x2 (SPEC.md section 11): fit's spread proxies and context-4 predictor (+0.30..0.37
+    # dB against the source renders over random / context 1) and no learning-rate warm-up (+0.46..0.53 dB over 5%):
+    # 32.38 dB against 31.55 for the settings used before. Resolutions drawn uniformly (no share at 100%) and no rate
+    # term (fit's session-9 default; not measured here).
+    fit: FitConfig = field(default_factory=lambda: FitConfig(iters=4000, max_width=800, lr_warmup=0.0,
+                                                             xi_full_share=0.0, lambda_rate=0.0))
     voxel_size: float = 0.0  # <= 0: automatic (choose_voxel)
     keep: float = 0.9  # automatic voxel: share of the Gaussians' weight the anchors' K slots must hold
     # automatic voxel: at most this many anchors. [D] Bytes: a stored anchor costs ~45 B in the container; lego's
-    # 129k-Gaussian PLY at the 90% rule would start with 27k anchors (~1.2 MB), at this cap 10.9k, trained to 31.9 dB
+    # 129k-Gaussian PLY at the 90% rule would start with 27k anchors (~1.2 MB), at this cap 10.9k, trained to 32.4 dB
     # against its renders (SPEC.md section 11)
     max_anchors: int = 12_000
     init_iters: int = 400  # regression steps of fit_attributes
