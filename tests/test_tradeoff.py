@@ -309,6 +309,9 @@ def test_encode_sweep_plan_centres_on_the_defaults():
     ids = {knob_id(k) for _, _, k in plan}
     assert "encode default (refit)" in ids and "encode proxy_ratio=0.1" in ids
     assert {"encode entropy=zstd", "encode entropy=model"} <= ids  # the default is "auto"
+    bits = [k for n, _, k in plan if n == "bits"]
+    assert bits and all(k["learned_steps"] is False for k in bits)  # else inert on a rate-trained scene
+    assert "encode learned_steps=False, offset_bits=6" in ids
     with pytest.raises(ProxycodecError, match="unknown sweep"):
         encode_sweep_plan(True, ["nope"])
 

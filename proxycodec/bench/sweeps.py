@@ -93,9 +93,10 @@ def encode_sweep_plan(quick: bool, sweeps: Sequence[str] | None = None) -> list[
         if sweeps and name not in sweeps:
             continue
         for v in values:
-            if name == "bits":
-                knobs = {"offset_bits": v[0], "feature_bits": v[1], "scaling_bits": v[2]}
-                label = f"offsets {v[0]} / features {v[1]} / scalings {v[2]}"
+            if name == "bits":  # [D] uniform grids of these depths: on a rate-trained scene encode otherwise quantises
+                # on the learned grids and the bits change nothing (bonsai, session 13: five points, one file)
+                knobs = {"offset_bits": v[0], "feature_bits": v[1], "scaling_bits": v[2], "learned_steps": False}
+                label = f"offsets {v[0]} / features {v[1]} / scalings {v[2]}, uniform grids"
             else:
                 knobs = {name: v}
                 label = v if isinstance(v, str) else f"{v:g}"
