@@ -231,9 +231,10 @@ def read_scaffold_cameras(path: str | os.PathLike) -> list[Camera]:
 
 def find_cameras_json(ply_path: str | os.PathLike) -> Path | None:
     """``cameras.json`` beside the PLY, or two folders up (3DGS's ``OUT/point_cloud/iteration_N/point_cloud.ply``
-    with ``OUT/cameras.json``)."""
-    p = Path(ply_path).resolve().parent
-    for folder in (p, p.parent.parent):
+    with ``OUT/cameras.json``); for a symbolic link, around the link first, then around the file it points to."""
+    link = Path(os.path.abspath(ply_path)).parent
+    real = Path(ply_path).resolve().parent
+    for folder in (link, link.parent.parent, real, real.parent.parent):
         c = folder / "cameras.json"
         if c.is_file():
             return c

@@ -129,6 +129,14 @@ def test_cameras_json_round_trips_and_is_found_where_3dgs_puts_it(tmp_path):
         assert (a.width, a.height, a.fx, a.fy, a.cx, a.cy, a.name) == (b.width, b.height, b.fx, b.fy, b.cx, b.cy,
                                                                         b.name)
     assert len(ExplicitModel.load(ply).cameras) == 3  # render / eval use them
+    # a link to the PLY in a folder with its own cameras.json (benchmarks/convert.py --input): the link's folder wins
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    write_cameras_json(elsewhere / "cameras.json", cams[:2])
+    (elsewhere / "linked.ply").symlink_to(ply)
+    assert find_cameras_json(elsewhere / "linked.ply") == elsewhere / "cameras.json"
+    (elsewhere / "cameras.json").unlink()
+    assert find_cameras_json(elsewhere / "linked.ply") == out / "cameras.json"  # then around the target
 
 
 # ---------------------------------------------------------------------------------------------- the run
