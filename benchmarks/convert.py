@@ -130,7 +130,7 @@ def _scene(run, name: str, sc: dict, given: str | None, spz: bool, overrides: di
     else:
         rec["explicit"] = run.step(f"{name}/3dgs fit", "explicit", {
             "dataset": ds, "max_width": mw, "test_every": 8, "out": str(ply),
-            "config": {"iters": sc["explicit_iters"], "time_budget": None, "seed": SEED, "log_every": 30.0, **(overrides or {})}},
+            "config": {"iters": sc["explicit_iters"], "time_budget": None, "seed": SEED, "log_every": 30.0}},
             outputs=[ply])
     if not ply.exists():
         return rec
