@@ -112,6 +112,14 @@ def test_the_report_measures_held_out_views_at_ten_resolutions(pair):
     assert rep["held_out"] and rep["views"]
     assert all(np.isfinite(r["psnr"]) and 0 < r["psnr"] < 100 for r in rep["per_resolution"])
     assert rep["psnr"] == pytest.approx(np.mean([r["psnr"] for r in rep["per_resolution"]]))
+    # against the teacher at the same resolution: at 100% that is the anti-aliased target itself; below, another
+    # image (the teacher's own render at that size), and the teacher matches it exactly (PSNR undefined)
+    full = rep["per_resolution"][-1]
+    assert full["psnr_same_xi"] == pytest.approx(full["psnr"], rel=1e-9)
+    assert any(abs(r["psnr_same_xi"] - r["psnr"]) > 0.01 for r in rep["per_resolution"][:-1])
+    assert rep["psnr_same_xi"] == pytest.approx(np.mean([r["psnr_same_xi"] for r in rep["per_resolution"]]))
+    assert held_out_report(m, TeacherViews(m, teacher_cameras(m, QUICK["distill_views"])),
+                           resolutions=(0.3, 1.0))["psnr_same_xi"] is None
     # the report is what the decoded file renders: recomputed from the decoded container it is the same
     views = TeacherViews(m, teacher_cameras(m, QUICK["distill_views"]))
     again = held_out_report(codec.decode(d / "dist.pxc"), views)
