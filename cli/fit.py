@@ -73,6 +73,10 @@ _no_undistort_option = click.option(
             help="Stage 2: weight of the rate term (estimated bits per anchor of the stored attributes under the "
                  "entropy model; noise quantisation with learned steps per channel, which encode then uses). "
                  "0: off.")
+@fit_option("--quant-cells", type=click.IntRange(0, 32), show_default=True,
+            help="Stage 2, with the rate term: learn a quantisation level per cell of a CELLS^3 grid over the "
+                 "anchors (per attribute, proxies and leaves apart; step x 2^(level/4)), as HAC++ adapts its steps "
+                 "by position. 0: per-channel steps only.")
 @fit_option("--stage2-start", type=click.FloatRange(0.05, 1.0), show_default=True,
             help="Fraction of the run at which the anchor set freezes and stage 2 (proxies) begins.")
 @fit_option("--recon-loss", type=click.Choice(["mse+cos", "mse", "l1"]), show_default=True,
@@ -108,7 +112,7 @@ _no_undistort_option = click.option(
 @user_errors
 def fit(dataset, out, iters, time_budget, max_width, seed, no_gate, embedding, fixed_res, xi_sampling, xi_full_share,
         film_hidden, stats_min_xi, no_proxies, proxy_ratio, proxy_selection, predictor_hidden, predictor_blocks,
-        predictor_warmup, predictor_context, predict_offsets, lambda_rate, stage2_start, recon_loss, lambda_recon, predictor_kind,
+        predictor_warmup, predictor_context, predict_offsets, lambda_rate, quant_cells, stage2_start, recon_loss, lambda_recon, predictor_kind,
         gate_kappa, gate_eta, voxel_size, init_points, images, test_every, no_undistort, resume, checkpoint_every,
         keep_checkpoint, backend, explicit, sh_degree) -> None:
     """Train an anchor scene on DATASET (Blender or COLMAP folder, detected by its files) and write OUT
@@ -138,7 +142,8 @@ def fit(dataset, out, iters, time_budget, max_width, seed, no_gate, embedding, f
                     gate_kappa=gate_kappa, gate_eta=gate_eta, proxy_ratio=proxy_ratio, proxy_selection=proxy_selection,
                     predictor_hidden=predictor_hidden, predictor_blocks=predictor_blocks,
                     predictor_warmup=predictor_warmup, predictor_context=predictor_context,
-                    predict_offsets=predict_offsets, lambda_rate=lambda_rate, stage2_start=stage2_start,
+                    predict_offsets=predict_offsets, lambda_rate=lambda_rate, quant_cells=quant_cells,
+                    stage2_start=stage2_start,
                     xi_sampling=xi_sampling,
                     xi_full_share=xi_full_share, film_hidden=film_hidden, stats_min_xi=stats_min_xi, **run)
     data = _load_data(dataset, max_width, images, test_every, not no_undistort)

@@ -42,7 +42,7 @@ from .scene import AnchorScene
 # The scene format (both halves) is torch-free; proxycodec.lite reads containers through it too.
 from .sections import (
     FLOAT_BITS, MAX_ANCHORS, OFFSETS, PREDICT_CHUNK, PROXY_FEATURES, SCALINGS, SCENE_FORMAT, SCENE_FORMAT_ENTROPY,
-    SCENE_KIND, QuantizedAnchors, encode_positions,
+    SCENE_FORMAT_LEVELS, SCENE_KIND, QuantizedAnchors, anchor_levels, encode_positions, level_table,
     guarded, pack_weights, quantize_anchors, read_scene_container, scene_extras, scene_metadata, scene_sections,
     stored_anchors, weights_from_sections, zero_dead_offsets,
 )
@@ -273,7 +273,8 @@ def encode(
     # 3. quantise what is stored; 4. fit the predictor against what the decoder will see
     steps = _learned_steps(scene.metadata, cfg, Fd, K)
     q = quantize_anchors(feats, offs, scal, mask, feature_bits=cfg.feature_bits, offset_bits=cfg.offset_bits,
-                         scaling_bits=cfg.scaling_bits, predict_offsets=cfg.predict_offsets, steps=steps)
+                         scaling_bits=cfg.scaling_bits, predict_offsets=cfg.predict_offsets, steps=steps,
+                         positions=pos_sorted, voxel=voxel)
     pred, tcfg, training, t_train = _fit_predictor(cfg, predictor, pos_sorted, mask, q, offs, Fd, K, voxel, say)
     # 5. sections + metadata
     sections = scene_sections(coding, mask, q, model.decoder.state_arrays(), pred.state_arrays(), cfg.weights_dtype)
@@ -299,7 +300,7 @@ def encode(
     err = ProxycodecError
     decoded = _model_from_sections(meta, sections, err)
     if cfg.drop_dead_offsets and not cfg.predict_offsets:
-        decoded = _drop_dead_offsets(decoded, sections, meta, q, cfg.dead_threshold, say)
+        decoded = _drop_dead_offsets(decoded, sections, meta, q, cfg.dead_threshold, say, pos_sorted, voxel, mask)
     if distilled is not None:
         meta["distill"]["held_out"] = _held_out(decoded, source_model, distilled, cfg, say)
     for k, v in (extra_meta or {}).items():  # the caller's word wins (convert: the source is the 3DGS PLY)
@@ -325,7 +326,8 @@ def encode(
 
 def _learned_steps(scene_meta: dict, cfg: EncodeConfig, Fd: int, K: int) -> dict | None:
     """The quantisation grids rate training learned (``quant_steps`` in the scene's metadata: per attribute
-    ``{"step": [C], "origin": [C]}``), checked; attributes the encode options store as float32 are left out."""
+    ``{"step": [C], "origin": [C]}``, plus ``"levels"`` with ``fit --quant-cells``), checked; attributes the encode
+    options store as float32 are left out."""
     grids = scene_meta.get("quant_steps") if isinstance(scene_meta, dict) else None
     if not cfg.learned_steps or not isinstance(grids, dict):
         return None
@@ -341,8 +343,10 @@ def _learned_steps(scene_meta: dict, cfg: EncodeConfig, Fd: int, K: int) -> dict
         if step.shape != (n,) or origin.shape != (n,) or not np.all(np.isfinite(step) & (step > 0)
                                                                   & np.isfinite(origin)):
             raise ProxycodecError(f"the scene's learned quantisation grid for {k} is malformed")
+        if "levels" in g:
+            level_table(g["levels"], lambda m, k=k: ProxycodecError(f"the scene's learned quantisation grid for {k}: {m}"))
         if getattr(cfg, knob[k]) != FLOAT_BITS:
-            out[k] = (step, origin)
+            out[k] = (step, origin) + ((g["levels"],) if "levels" in g else ())
     return out
 
 
@@ -397,7 +401,8 @@ def _entropy_code(sections: dict, meta: dict, pos_sorted: np.ndarray, voxel: flo
     emeta["zstd_bytes"] = zstd_bytes  # what zstd alone would store for the same sections
     emeta["hidden"], emeta["iters"] = cfg.entropy_hidden, cfg.entropy_iters
     meta["entropy"] = emeta
-    meta["scene_format"] = SCENE_FORMAT_ENTROPY
+    if meta["scene_format"] != SCENE_FORMAT_LEVELS:  # format 5 (per-cell levels) covers both codings
+        meta["scene_format"] = SCENE_FORMAT_ENTROPY
     out = {k: v for k, v in sections.items() if k not in names}
     out.update(coded)
     say("entropy model: " + ", ".join(f"{k} {v:,.0f} B" for k, v in sizes.items())
@@ -524,12 +529,14 @@ def _fit_predictor(cfg: EncodeConfig, predictor: ResidualPredictor | None, pos_s
 
 
 def _drop_dead_offsets(decoded: SceneModel, sections: dict, meta: dict, q: QuantizedAnchors, threshold: float,
-                       say: Progress) -> SceneModel:
+                       say: Progress, positions: np.ndarray, voxel: float, mask: np.ndarray) -> SceneModel:
     """Store the offsets of never-drawn neural Gaussians as 0 (``sections`` and ``meta`` updated in place);
     -> the decoded model of the result."""
     dead = ~_live_slots(decoded, threshold)  # [M, K] in stored (Morton) order
     if dead.any():
-        sections[OFFSETS] = zero_dead_offsets(sections[OFFSETS], q.quant["offsets"], dead)
+        qp = q.quant["offsets"]
+        lv = None if "levels" not in qp else anchor_levels(qp["levels"], positions, voxel, ~mask, ProxycodecError)
+        sections[OFFSETS] = zero_dead_offsets(sections[OFFSETS], qp, dead, lv)
         decoded = _model_from_sections(meta, sections, ProxycodecError)
     meta["offsets_dead"] = {"slots": int(dead.sum()), "of": int(dead.size), "threshold": threshold}
     say(f"{int(dead.sum())} of {dead.size} neural Gaussians are never drawn: their offsets are stored as 0")
@@ -752,8 +759,17 @@ def _scene_stats(meta: dict, infos, size: int) -> dict:
         "source_bytes": src, "ratio": (src / size) if src else None, "bytes_by_group": groups,
         "positions": meta.get("positions", {}).get("mode"), "offsets": meta.get("offsets"),
         "proxy": meta.get("proxy"), "quant_bits": {k: v.get("bits") for k, v in meta.get("quant", {}).items()},
+        "quant_levels": {k: _level_summary(v["levels"]) for k, v in meta.get("quant", {}).items()
+                         if isinstance(v, dict) and "levels" in v},
         "weights_dtype": meta.get("weights_dtype"), "distill": meta.get("distill"),
     }
+
+
+def _level_summary(info) -> dict:
+    """A per-cell level table in a few numbers (``stats``): cells per axis, the level range, the cells away from 0."""
+    G, table = level_table(info, ValueError)
+    return {"cells": G, "min": int(table.min()), "max": int(table.max()), "nonzero": int((table != 0).sum()),
+            "entries": int(table.size)}
 
 
 def _ply_stats(path: Path, scaffold_mlps: list[Path] | None = None, scaffold_mode: str | None = None) -> dict:

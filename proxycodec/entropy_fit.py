@@ -17,6 +17,7 @@ import numpy as np
 import torch
 
 from . import entropy as ent
+from .sections import LEVEL_DIVISOR, LEVEL_MAX, level_multipliers, position_cells
 
 INPUT_SCALE = 128.0
 
@@ -201,8 +202,15 @@ class RateModel(torch.nn.Module):
 
     def __init__(self, positions: np.ndarray, voxel: float, mask: np.ndarray, features: torch.Tensor,
                  offsets: torch.Tensor, scalings: torch.Tensor, *, bits: int = 8, hidden: int = 32,
-                 sample: int = 2048):
+                 sample: int = 2048, cells: int = 0):
         super().__init__()
+        self.cells = int(cells)
+        if self.cells:  # per-cell levels (scene format 5): an anchor's step is its channel's x 2^(level / 4)
+            self.register_buffer("cell", torch.from_numpy(position_cells(positions, voxel, self.cells)))
+            self.register_buffer("kind", torch.from_numpy((~np.asarray(mask, bool)).astype(np.int64)))
+            self.register_buffer("multipliers", torch.from_numpy(level_multipliers()).float())
+            self.levels = torch.nn.ParameterDict({k: torch.nn.Parameter(torch.zeros(2, self.cells ** 3))
+                                                  for k in ATTR_CHANNELS})
         ctx = ent.Context.of(np.asarray(positions, np.float32), voxel, np.asarray(mask, bool))
         self.register_buffer("posn", torch.from_numpy(ctx.posn).float())
         self.register_buffer("rel", torch.from_numpy(ctx.rel).float())
@@ -226,11 +234,29 @@ class RateModel(torch.nn.Module):
             with torch.no_grad():
                 net.layers[-1].bias[net.n_out:] = (math.log((1 << bits) / 4) - ent.LN_B0) * ent.LN_STEP
 
-    def grids(self) -> dict[str, dict[str, list[float]]]:
-        """Per attribute: the quantisation grid, ``{"step": [C], "origin": [C]}`` (``quant_steps`` metadata)."""
-        return {k: {"step": [float(x) for x in torch.exp(v).detach().double()],
-                    "origin": [float(x) for x in getattr(self, f"mid_{k}").double()]}
-                for k, v in self.log_step.items()}
+    def grids(self) -> dict[str, dict]:
+        """Per attribute: the quantisation grid, ``{"step": [C], "origin": [C]}`` (``quant_steps`` metadata), and
+        with per-cell levels ``"levels": {"cells": G, "table": [2 G^3]}`` (``sections.level_table``)."""
+        out = {k: {"step": [float(x) for x in torch.exp(v).detach().double()],
+                   "origin": [float(x) for x in getattr(self, f"mid_{k}").double()]}
+               for k, v in self.log_step.items()}
+        if self.cells:
+            for k, u in self.levels.items():
+                table = torch.round(u.detach().clamp(-LEVEL_MAX, LEVEL_MAX)).long()
+                out[k]["levels"] = {"cells": self.cells, "table": [int(v) for v in table.flatten()]}
+        return out
+
+    def step_of(self, k: str) -> torch.Tensor:
+        """[C] (per channel) or [M, C] (per anchor, with per-cell levels): the grid steps of attribute ``k``; the
+        levels' multipliers are exactly the decoder's (``sections.level_multipliers``), their gradient
+        straight-through (that of ``2^(level / 4)`` at the rounded level)."""
+        step = torch.exp(self.log_step[k])
+        if not self.cells:
+            return step
+        u = self.levels[k][0 if k == "features" else self.kind, self.cell].clamp(-LEVEL_MAX, LEVEL_MAX)
+        m = self.multipliers[(torch.round(u).long() + LEVEL_MAX)]
+        m = m + (m * (math.log(2) / LEVEL_DIVISOR)).detach() * (u - u.detach())
+        return step * m[:, None]
 
     @torch.no_grad()
     def rounded(self, features: torch.Tensor, offsets: torch.Tensor, scalings: torch.Tensor):
@@ -238,14 +264,14 @@ class RateModel(torch.nn.Module):
         M, K = offsets.shape[:2]
         out = []
         for k, x in (("features", features), ("offsets", offsets.reshape(M, 3 * K)), ("scalings", scalings)):
-            step, mid = torch.exp(self.log_step[k]), getattr(self, f"mid_{k}")
+            step, mid = self.step_of(k), getattr(self, f"mid_{k}")
             out.append(mid + torch.round((x - mid) / step) * step)
         return out[0], out[1].reshape(M, K, 3), out[2]
 
     def forward(self, features: torch.Tensor, offsets: torch.Tensor, scalings: torch.Tensor, generator=None):
         M, K = offsets.shape[:2]
         F = features.shape[1]
-        st = {k: torch.exp(v) for k, v in self.log_step.items()}
+        st = {k: self.step_of(k) for k in self.log_step}
         o2 = offsets.reshape(M, 3 * K)
         v_f = (features - self.mid_features) / st["features"]  # continuous symbols; features: the proxies' rows
         v_s = (scalings - self.mid_scalings) / st["scalings"]

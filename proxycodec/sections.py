@@ -13,6 +13,8 @@ and a malformed file fails the same way, with one ``ContainerError``.
 
 from __future__ import annotations
 
+import decimal
+import functools
 import math
 import os
 from collections.abc import Callable
@@ -35,11 +37,19 @@ SCENE_FORMAT_VARIANT = 3
 #: 4: the stored attributes (proxy features, scalings, offsets) arithmetic-coded under the conditional entropy
 #: model (``proxycodec.entropy``; ``meta["entropy"]``); weights and variants as in formats 2 and 3.
 SCENE_FORMAT_ENTROPY = 4
-SUPPORTED_SCENE_FORMATS = (1, 2, 3, 4)
+#: 5: any of formats 2-4 with per-cell quantisation levels (``meta["quant"][attribute]["levels"]``: the step of an
+#: anchor's values is the channel's step times ``2^(level / 4)``, the level looked up by the anchor's position cell
+#: and whether it is a proxy). Written only when a scene has learned levels (``fit --quant-cells``).
+SCENE_FORMAT_LEVELS = 5
+SUPPORTED_SCENE_FORMATS = (1, 2, 3, 4, 5)
 FLOAT_BITS = 32  # "bits" value meaning: store float32, no quantisation
 PREDICT_CHUNK = 65536  # leaves per predictor batch (fixed: the same batches in encoder and decoder)
 MAX_ANCHORS = 1 << 28
 QSCALE = ".qscale"  # suffix of the per-row scale section of an int8 ("q8") weight matrix
+
+LEVEL_MAX = 8  # per-cell quantisation levels are integers in [-LEVEL_MAX, LEVEL_MAX]: steps x 2^(level / 4)
+LEVEL_DIVISOR = 4
+MAX_LEVEL_CELLS = 32  # cells per axis of a level table
 
 GRID_SUBDIVISIONS = 4  # positions may sit on voxel / 2^j for j <= this (Scaffold-GS grows anchors on finer grids)
 
@@ -56,8 +66,52 @@ ErrorFactory = Callable[[str], ProxycodecError]
 
 
 # ---------------------------------------------------------------------------------------------- primitives
-def dequantize(q: np.ndarray, params: dict, name: str, err) -> np.ndarray:
-    """Inverse of ``quantize``: offset + q * scale in float64, rounded once to float32."""
+@functools.lru_cache(maxsize=1)
+def level_multipliers() -> np.ndarray:
+    """[2 LEVEL_MAX + 1] float64, each a float32 value: ``2^(level / 4)`` for level -LEVEL_MAX..LEVEL_MAX, computed
+    in decimal arithmetic (correctly rounded, software: no libm), so every machine has the same numbers."""
+    ctx = decimal.Context(prec=50)
+    D = decimal.Decimal
+    ln2 = ctx.ln(D(2))
+    return np.array([float(np.float32(float(ctx.exp(ctx.multiply(ln2, ctx.divide(D(v), D(LEVEL_DIVISOR)))))))
+                     for v in range(-LEVEL_MAX, LEVEL_MAX + 1)], np.float64)
+
+
+def position_cells(positions: np.ndarray, voxel: float, cells: int) -> np.ndarray:
+    """[M] int64: each anchor's cell of a ``cells``^3 grid over the anchors' voxel bounding box (integer arithmetic
+    on ``floor(position / voxel)``, IEEE division: the same cells in the trainer, the encoder and every decoder)."""
+    c = np.floor(np.asarray(positions, np.float64) / float(voxel)).astype(np.int64)
+    if not len(c):
+        return np.zeros(0, np.int64)
+    lo = c.min(0)
+    span = int((c.max(0) - lo).max()) + 1
+    ijk = (c - lo) * cells // span
+    return (ijk[:, 0] * cells + ijk[:, 1]) * cells + ijk[:, 2]
+
+
+def level_table(info, err) -> tuple[int, np.ndarray]:
+    """A ``levels`` entry of the quantisation metadata, checked: (cells per axis G, table [2, G^3] int64: row 0 the
+    proxies' levels, row 1 the leaves', by cell)."""
+    if not isinstance(info, dict):
+        raise err("bad quantisation levels")
+    G, table = info.get("cells"), info.get("table")
+    if not (isinstance(G, int) and not isinstance(G, bool) and 1 <= G <= MAX_LEVEL_CELLS):
+        raise err(f"bad quantisation level cells {G!r}")
+    if not (isinstance(table, list) and len(table) == 2 * G ** 3
+            and all(isinstance(v, int) and not isinstance(v, bool) and -LEVEL_MAX <= v <= LEVEL_MAX for v in table)):
+        raise err("bad quantisation level table")
+    return G, np.asarray(table, np.int64).reshape(2, G ** 3)
+
+
+def anchor_levels(info, positions: np.ndarray, voxel: float, leaf: np.ndarray, err) -> np.ndarray:
+    """[N] int64: the quantisation level of each anchor (``positions`` [N, 3] of the whole scene; ``leaf`` [N])."""
+    G, table = level_table(info, err)
+    return table[np.asarray(leaf, np.int64), position_cells(positions, voxel, G)]
+
+
+def dequantize(q: np.ndarray, params: dict, name: str, err, levels: np.ndarray | None = None) -> np.ndarray:
+    """Inverse of ``quantize``: offset + q * scale in float64, rounded once to float32. With per-cell levels
+    (``params["levels"]``; ``levels`` [N]: each column's level), ``offset + (q - zero) * (scale * 2^(level / 4))``."""
     bits = params["bits"]
     if bits == FLOAT_BITS:
         if q.dtype != np.float32:
@@ -78,7 +132,16 @@ def dequantize(q: np.ndarray, params: dict, name: str, err) -> np.ndarray:
         raise err(f"section {name!r}: quantisation parameters are not finite")
     if int(q.max(initial=0)) > (1 << bits) - 1:
         raise err(f"section {name!r}: value exceeds {bits} bits")
-    x = (off[:, None] + q.astype(np.float64) * sc[:, None]).astype(np.float32)
+    if "levels" in params:
+        zero = np.asarray(params["zero"], dtype=np.int64)
+        if zero.shape != (q.shape[0],) or np.abs(zero).max(initial=0) > 1 << 20:
+            raise err(f"section {name!r}: bad quantisation zero points")
+        if levels is None or levels.shape != (q.shape[1],):
+            raise err(f"section {name!r}: quantisation levels do not match its {q.shape[1]} anchors")
+        mult = level_multipliers()[levels + LEVEL_MAX]
+        x = (off[:, None] + (q.astype(np.float64) - zero[:, None]) * (sc[:, None] * mult[None, :])).astype(np.float32)
+    else:
+        x = (off[:, None] + q.astype(np.float64) * sc[:, None]).astype(np.float32)
     if not np.all(np.isfinite(x)):
         raise err(f"section {name!r} dequantises to NaN or Inf")
     return x
@@ -103,23 +166,29 @@ def quantize(x: np.ndarray, bits: int) -> tuple[np.ndarray, dict]:
     return q, {"bits": int(bits), "offset": [float(v) for v in lo], "scale": [float(v) for v in scale]}
 
 
-def quantize_step(x: np.ndarray, step: np.ndarray, origin: np.ndarray) -> tuple[np.ndarray, dict]:
+def quantize_step(x: np.ndarray, step: np.ndarray, origin: np.ndarray, levels: np.ndarray | None = None
+                  ) -> tuple[np.ndarray, dict]:
     """[C, N] float -> (stored array, parameters) on a given grid per channel, ``origin + k step`` (learned by rate
     training): stored levels ``k - min k``, as many bits as the largest needs. At most 16: a grid too fine for that
-    is replaced by the channel's range in 2^16 levels."""
+    is replaced by the channel's range in 2^16 levels. ``levels`` [N]: per-cell levels (scene format 5), each
+    column's grid ``origin + k step 2^(level / 4)``; the parameters then hold ``origin`` and ``zero = -min k``."""
     xd = np.asarray(x, dtype=np.float64)
     step = np.asarray(step, dtype=np.float64)
     origin = np.asarray(origin, dtype=np.float64)
     C = xd.shape[0]
     if step.shape != (C,) or origin.shape != (C,) or not np.all(np.isfinite(step) & (step > 0) & np.isfinite(origin)):
         raise ProxycodecError("quantisation grids must be finite with positive steps, one per channel")
-    k = np.rint((xd - origin[:, None]) / step[:, None]) if xd.shape[1] else np.zeros(xd.shape)
+    col = step[:, None] if levels is None else step[:, None] * level_multipliers()[levels + LEVEL_MAX][None, :]
+    k = np.rint((xd - origin[:, None]) / col) if xd.shape[1] else np.zeros(xd.shape)
     lo = k.min(1) if xd.shape[1] else np.zeros(C)
     q = k - lo[:, None]
     bits = max(1, int(q.max(initial=0)).bit_length())
     if bits > 16:
         return quantize(x, 16)
     q = q.astype(np.uint8 if bits <= 8 else np.uint16)
+    if levels is not None:
+        return q, {"bits": bits, "offset": [float(v) for v in origin], "zero": [int(-v) for v in lo],
+                   "scale": [float(v) for v in step]}
     return q, {"bits": bits, "offset": [float(v) for v in origin + lo * step], "scale": [float(v) for v in step]}
 
 
@@ -244,27 +313,41 @@ class QuantizedAnchors:
 
 def quantize_anchors(features: np.ndarray, offsets: np.ndarray, scalings: np.ndarray, proxy_mask: np.ndarray, *,
                      feature_bits: int, offset_bits: int, scaling_bits: int, predict_offsets: bool,
-                     steps: dict | None = None) -> QuantizedAnchors:
+                     steps: dict | None = None, positions: np.ndarray | None = None,
+                     voxel: float | None = None) -> QuantizedAnchors:
     """Arrays in the stored order -> their quantised sections (channel-major: one row per channel). Stored: every
     anchor's scalings, the proxies' features, every anchor's offsets (the proxies' only when ``predict_offsets``).
     ``steps``: per attribute ("features", "scalings", "offsets"), a grid per channel, ``(step, origin)``
-    (``quantize_step``), used instead of that attribute's bit depth."""
+    (``quantize_step``), used instead of that attribute's bit depth; or ``(step, origin, levels)`` with a per-cell
+    level table (``level_table``; scene format 5), which needs the anchors' ``positions`` and ``voxel``."""
     err = ProxycodecError
     M, K = offsets.shape[:2]
     mask = proxy_mask
     steps = steps or {}
+    rows = {"scalings": np.ones(M, bool), "features": mask, "offsets": mask if predict_offsets else np.ones(M, bool)}
+    lv: dict[str, np.ndarray] = {}
+    for name, g in steps.items():
+        if len(g) > 2:
+            lv[name] = anchor_levels(g[2], positions, voxel, ~mask, err)[rows[name]]
 
     def quant(x, bits, name):
-        return quantize_step(x, *steps[name]) if name in steps else quantize(x, bits)
+        if name not in steps:
+            return quantize(x, bits)
+        q, params = quantize_step(x, steps[name][0], steps[name][1], lv.get(name))
+        if "zero" in params:
+            params["levels"] = steps[name][2]
+        else:
+            lv.pop(name, None)  # too fine for 16 bits: the channel's range instead (``quantize_step``)
+        return q, params
 
     q_scal, qp_scal = quant(scalings.T, scaling_bits, "scalings")
     q_feat, qp_feat = quant(features[mask].T, feature_bits, "features")
     off_rows = offsets if not predict_offsets else offsets[mask]
     q_off, qp_off = quant(off_rows.reshape(len(off_rows), 3 * K).T, offset_bits, "offsets")
     feat_dq = features.copy()
-    feat_dq[mask] = dequantize(q_feat, qp_feat, PROXY_FEATURES, err).T
+    feat_dq[mask] = dequantize(q_feat, qp_feat, PROXY_FEATURES, err, lv.get("features")).T
     off_dq = offsets.copy()
-    od = dequantize(q_off, qp_off, OFFSETS, err).T.reshape(-1, K, 3)
+    od = dequantize(q_off, qp_off, OFFSETS, err, lv.get("offsets")).T.reshape(-1, K, 3)
     if predict_offsets:
         off_dq[mask] = od
     else:
@@ -313,7 +396,8 @@ def scene_metadata(positions: PositionCoding, proxy_mask: np.ndarray, quantized:
     M, P = int(len(proxy_mask)), int(proxy_mask.sum())
     return {
         "kind": SCENE_KIND,
-        "scene_format": SCENE_FORMAT_VARIANT if decoder_config.variant() else SCENE_FORMAT,
+        "scene_format": (SCENE_FORMAT_LEVELS if any("levels" in v for v in quantized.quant.values())
+                         else SCENE_FORMAT_VARIANT if decoder_config.variant() else SCENE_FORMAT),
         "anchors": {"count": M, "proxies": P, "leaves": M - P, "feat_dim": feat_dim, "n_offsets": n_offsets},
         "voxel_size": voxel_size,
         "bounds": np.asarray(bounds, dtype=np.float64).tolist(),
@@ -329,19 +413,25 @@ def scene_metadata(positions: PositionCoding, proxy_mask: np.ndarray, quantized:
     }
 
 
-def zero_dead_offsets(q_off: np.ndarray, qp: dict, dead: np.ndarray) -> np.ndarray:
-    """Stored offsets [3K, M] with the dead slots' three channels set to each channel's level nearest 0."""
+def zero_dead_offsets(q_off: np.ndarray, qp: dict, dead: np.ndarray, levels: np.ndarray | None = None
+                      ) -> np.ndarray:
+    """Stored offsets [3K, M] with the dead slots' three channels set to each channel's level nearest 0
+    (``levels`` [M]: each anchor's per-cell level, with scene format 5's grids)."""
     q = q_off.copy()
     if qp.get("bits") == FLOAT_BITS:
-        zero = np.zeros(q.shape[0], q.dtype)
+        zero = np.zeros(q.shape, q.dtype)
     else:
-        off = np.asarray(qp["offset"], np.float64)
-        scale = np.asarray(qp["scale"], np.float64)
+        off = np.asarray(qp["offset"], np.float64)[:, None]
+        scale = np.asarray(qp["scale"], np.float64)[:, None]
+        z0 = np.zeros_like(off)
+        if "levels" in qp:
+            scale = scale * level_multipliers()[levels + LEVEL_MAX][None, :]
+            z0 = np.asarray(qp["zero"], np.float64)[:, None]
         with np.errstate(divide="ignore", invalid="ignore"):
-            zero = np.where(scale > 0, np.round(-off / np.where(scale > 0, scale, 1)), 0)
-        zero = np.clip(zero, 0, (1 << int(qp["bits"])) - 1).astype(q.dtype)
+            zero = np.where(scale > 0, np.round(-off / np.where(scale > 0, scale, 1)) + z0, z0)
+        zero = np.clip(np.broadcast_to(zero, q.shape), 0, (1 << int(qp["bits"])) - 1).astype(q.dtype)
     rows = np.repeat(dead.T, 3, axis=0)  # [3K, M]: channel k*3 + c belongs to slot k
-    q[rows] = np.broadcast_to(zero[:, None], q.shape)[rows]
+    q[rows] = zero[rows]
     return q
 
 
@@ -498,25 +588,34 @@ def stored_anchors(meta: dict, sections: dict[str, np.ndarray], err: ErrorFactor
     if int(mask.sum()) != P:
         raise err(f"proxy mask marks {int(mask.sum())} proxies, metadata says {P}")
     q = meta["quant"]
-    if (meta.get("scene_format") == SCENE_FORMAT_ENTROPY) != ("entropy" in meta):
-        raise err("entropy-coded sections need scene format 4 and its 'entropy' metadata")
+    fmt = meta.get("scene_format")
+    if (fmt == SCENE_FORMAT_ENTROPY or (fmt == SCENE_FORMAT_LEVELS and "entropy" in meta)) != ("entropy" in meta):
+        raise err("entropy-coded sections need scene format 4 or 5 and its 'entropy' metadata")
+    if (fmt == SCENE_FORMAT_LEVELS) != any(isinstance(v, dict) and "levels" in v for v in q.values()):
+        raise err("per-cell quantisation levels need scene format 5, and format 5 needs them")
     if "entropy" in meta:
         if meta["offsets"] != "stored":
             raise err("entropy coding covers stored offsets only")
         sections = {**sections, **entropy_sections(meta["entropy"], sections, pos, voxel, mask, Fd, K, q, err)}
+
+    def levels(name: str, rows: np.ndarray) -> np.ndarray | None:
+        info = q[name].get("levels")
+        return None if info is None else anchor_levels(info, pos, voxel, ~mask, err)[rows]
+
+    every = np.ones(M, bool)
     scal = dequantize(_section(sections, SCALINGS, err, (6, M), "uf"), q["scalings"],
-                       SCALINGS, err).T
+                      SCALINGS, err, levels("scalings", every)).T
     feats = np.zeros((M, Fd), dtype=np.float32)
     feats[mask] = dequantize(_section(sections, PROXY_FEATURES, err, (Fd, P), "uf"), q["features"],
-                              PROXY_FEATURES, err).T
+                             PROXY_FEATURES, err, levels("features", mask)).T
     offsets_mode = meta["offsets"]
     if offsets_mode == "stored":
         offs = dequantize(_section(sections, OFFSETS, err, (3 * K, M), "uf"), q["offsets"],
-                           OFFSETS, err).T.reshape(M, K, 3)
+                          OFFSETS, err, levels("offsets", every)).T.reshape(M, K, 3)
     elif offsets_mode == "predicted":
         offs = np.zeros((M, K, 3), dtype=np.float32)
         offs[mask] = dequantize(_section(sections, PROXY_OFFSETS, err, (3 * K, P), "uf"), q["offsets"],
-                                 PROXY_OFFSETS, err).T.reshape(P, K, 3)
+                                PROXY_OFFSETS, err, levels("offsets", mask)).T.reshape(P, K, 3)
     else:
         raise err(f"unknown offsets mode {offsets_mode!r}")
     # networks

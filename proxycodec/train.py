@@ -50,6 +50,7 @@ from .proxy import (
 )
 from .render.project import GateConfig
 from .scene import AnchorScene
+from .sections import MAX_LEVEL_CELLS
 from .strategy import ScaffoldStrategy
 
 __all__ = [
@@ -171,6 +172,12 @@ class FitConfig:
     # 1.22 dB below a fit without it (SPEC.md section 4, "Entropy coding"): --lambda-rate 0 for the most quality.
     lambda_rate: float = 1e-4
     lr_quant_step: float = 2e-3  # Adam on the log of each channel's step
+    # Per-cell quantisation levels (with the rate term; HAC++'s adaptive step, by position): the anchors' voxel
+    # bounding box in quant_cells^3 cells, and per cell, attribute and proxy/leaf a learned level: the step is the
+    # channel's x 2^(level / 4), level in [-8, 8] (straight-through), stored in the scene metadata and the
+    # container (scene format 5). 0: per-channel steps only.
+    quant_cells: int = 0
+    lr_quant_level: float = 0.01  # Adam on the levels (a level is ln(2) / 4 = 0.17 of a log-step unit)
     lr_rate_model: float = 3e-3  # the float entropy nets
     # bookkeeping
     image_cache_mb: int = 2048  # decoded 100% training images kept (float16); beyond this they are re-read
@@ -195,6 +202,8 @@ class FitConfig:
                         context=self.predictor_context)  # validates width, depth and context
         if not (math.isfinite(self.lambda_rate) and self.lambda_rate >= 0):
             raise ProxycodecError(f"lambda_rate must be >= 0, got {self.lambda_rate}")
+        if not (0 <= self.quant_cells <= MAX_LEVEL_CELLS):
+            raise ProxycodecError(f"quantisation cells must be in [0, {MAX_LEVEL_CELLS}], got {self.quant_cells}")
         if not (0.0 <= self.lr_warmup < 1.0):
             raise ProxycodecError(f"learning-rate warm-up must be a fraction of the run in [0, 1), got {self.lr_warmup}")
         if self.predictor_warmup < 0:
@@ -401,6 +410,8 @@ class Trainer(TrainingRun):
                 lrs[name] = exp_lr(*c.lr_predictor, p2 if c.predictor_lr_stage2 else p)
             elif name.startswith("rate.log_step"):
                 lrs[name] = c.lr_quant_step
+            elif name.startswith("rate.levels"):
+                lrs[name] = c.lr_quant_level
             elif name.startswith("rate."):
                 lrs[name] = c.lr_rate_model
         if c.lr_warmup > 0 and p < c.lr_warmup:
@@ -530,7 +541,7 @@ class Trainer(TrainingRun):
             return
         a = self.anchors
         self.rate = RateModel(a.positions.numpy(), a.voxel_size, mask, a.features.detach(), a.offsets.detach(),
-                              a.scalings.detach())
+                              a.scalings.detach(), cells=self.cfg.quant_cells)
         if state is not None:
             self.rate.load_state_dict({k: torch.from_numpy(np.array(v)) for k, v in state.items()})
         for k, p in self.rate.named_parameters():

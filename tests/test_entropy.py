@@ -1,5 +1,5 @@
 """The conditional entropy model (scene format 4): exact integer nets, fixed tables, lossless round trips through
-both decoders, golden files of formats 1, 2 and 4, hostile entropy sections, and the rate term of training."""
+both decoders, golden files of formats 1, 2, 4 and 5, hostile entropy sections, and the rate term of training."""
 
 from __future__ import annotations
 
@@ -29,6 +29,23 @@ def golden_scene():
     from test_codec import tiny_model
 
     return tiny_model(n=96, seed=3)
+
+
+def golden_steps() -> dict:
+    """Fixed learned grids with per-cell levels for the golden scene's format-5 file (every level in the table, so
+    every multiplier is exercised)."""
+    F, K = 32, 10
+    lv = [((7 * i) % 17) - 8 for i in range(2 * 8)]  # G = 2: 2 x 8 cells
+    return {"features": {"step": [0.02] * F, "origin": [0.01] * F, "levels": {"cells": 2, "table": lv}},
+            "scalings": {"step": [0.01] * 6, "origin": [-2.0] * 6, "levels": {"cells": 2, "table": lv[::-1]}},
+            "offsets": {"step": [0.01] * (3 * K), "origin": [0.0] * (3 * K),
+                        "levels": {"cells": 2, "table": [v // 2 for v in lv]}}}
+
+
+def golden_scene_levels():
+    m = golden_scene()
+    m.scene = replace(m.scene, metadata={**m.scene.metadata, "quant_steps": golden_steps()})
+    return m
 
 
 def stored_digest(path) -> str:
@@ -63,6 +80,19 @@ def test_tables_are_integer_laplace_rows_with_a_committed_hash():
     assert np.all(np.diff(wider) > 0)  # each level flatter than the last
     digest = hashlib.sha256(t.tobytes()).hexdigest()
     assert digest == json.loads((GOLDEN / "hashes.json").read_text())["tables"]
+
+
+def test_level_multipliers_are_float32_powers_of_two_with_a_committed_hash():
+    from proxycodec.sections import LEVEL_MAX, level_multipliers
+
+    m = level_multipliers()
+    assert m.shape == (2 * LEVEL_MAX + 1,) and m[LEVEL_MAX] == 1.0
+    assert np.array_equal(m, m.astype(np.float32).astype(np.float64))  # float32 values
+    want = 2.0 ** (np.arange(-LEVEL_MAX, LEVEL_MAX + 1) / 4)
+    assert np.all(np.abs(m - want) <= np.spacing(want.astype(np.float32)))  # the nearest float32, within an ulp
+    assert np.all(m[4::4] == 2.0 ** np.arange(-1, 3))  # whole octaves exact
+    digest = hashlib.sha256(m.tobytes()).hexdigest()
+    assert digest == json.loads((GOLDEN / "hashes.json").read_text())["level_multipliers"]
 
 
 def _random_net(rng, n_in, hidden, n_out, big=False) -> entropy.IntNet:
@@ -203,14 +233,21 @@ def test_laplace_bits_match_the_integer_tables():
 
 
 # ------------------------------------------------------------------------------------------------ golden files
-@pytest.mark.parametrize("name", ["scene_v1.pxc", "scene_v2.pxc", "scene_v4.pxc"])
+@pytest.mark.parametrize("name", ["scene_v1.pxc", "scene_v2.pxc", "scene_v4.pxc", "scene_v5.pxc"])
 def test_golden_containers_decode_to_their_committed_hashes(name):
-    """The cross-machine check: committed containers of scene formats 1, 2 and 4 decode to committed hashes of
-    their stored arrays (format 4 through the entropy model and the ANS coder), in both decoders."""
+    """The cross-machine check: committed containers of scene formats 1, 2, 4 and 5 decode to committed hashes of
+    their stored arrays (formats 4 and 5 through the entropy model and the ANS coder; 5 with per-cell levels), in
+    both decoders."""
     want = json.loads((GOLDEN / "hashes.json").read_text())
     path = GOLDEN / name
     assert stored_digest(path) == want[name]
-    assert want[name] == want["scene_v2.pxc"]  # the same scene and symbols in every format
+    if name != "scene_v5.pxc":
+        assert want[name] == want["scene_v2.pxc"]  # the same scene and symbols in every format
+    else:
+        meta = read_scene_container(path).meta
+        assert meta["scene_format"] == 5 and "entropy" in meta
+        assert {k: q["levels"] for k, q in meta["quant"].items()} == {k: g["levels"]
+                                                                      for k, g in golden_steps().items()}
     m, lt = codec.decode(path), lite.decode(path)
     assert torch.isfinite(m.scene.features).all()
     np.testing.assert_allclose(lt.features, m.scene.features.numpy(), atol=1e-5)
@@ -259,10 +296,37 @@ HOSTILE = {
 }
 
 
-@pytest.mark.parametrize("case", sorted(HOSTILE))
+def _quant(m, attr, **kw):
+    return {**m, "quant": {**m["quant"], attr: {**m["quant"][attr], **kw}}}
+
+
+def _levels(m, attr, **kw):
+    return _quant(m, attr, levels={**m["quant"][attr]["levels"], **kw})
+
+
+HOSTILE_LEVELS = {
+    "levels_format_4_claimed": (lambda m: {**m, "scene_format": 4}, None),
+    "levels_dropped": (lambda m: {**m, "quant": {k: {f: v for f, v in q.items() if f != "levels"}
+                                                 for k, q in m["quant"].items()}}, None),
+    "levels_out_of_range": (lambda m: _levels(m, "offsets", table=[9] * len(m["quant"]["offsets"]["levels"]["table"])),
+                            None),
+    "levels_table_short": (lambda m: _levels(m, "scalings", table=[0]), None),
+    "levels_cells_zero": (lambda m: _levels(m, "features", cells=0), None),
+    "levels_cells_huge": (lambda m: _levels(m, "features", cells=1 << 20), None),
+    "levels_float": (lambda m: _levels(m, "offsets", table=[0.5] * len(m["quant"]["offsets"]["levels"]["table"])),
+                     None),
+    "levels_not_a_dict": (lambda m: _quant(m, "offsets", levels=[1, 2]), None),
+    "levels_zero_missing": (lambda m: {**m, "quant": {**m["quant"], "offsets": {
+        f: v for f, v in m["quant"]["offsets"].items() if f != "zero"}}}, None),
+    "levels_zero_wrong_length": (lambda m: _quant(m, "offsets", zero=[0]), None),
+}
+
+
+@pytest.mark.parametrize("case", sorted(HOSTILE) + sorted(HOSTILE_LEVELS))
 def test_hostile_entropy_sections_give_one_line_errors(case, tmp_path):
-    meta_fn, arrays_fn = HOSTILE[case]
-    path = _rewrite(GOLDEN / "scene_v4.pxc", tmp_path / f"{case}.pxc", meta_fn, arrays_fn)
+    meta_fn, arrays_fn = HOSTILE.get(case) or HOSTILE_LEVELS[case]
+    src = GOLDEN / ("scene_v5.pxc" if case in HOSTILE_LEVELS else "scene_v4.pxc")
+    path = _rewrite(src, tmp_path / f"{case}.pxc", meta_fn, arrays_fn)
     for decode in (codec.decode, lite.decode):
         with pytest.raises(ProxycodecError) as e:
             decode(path)

@@ -325,6 +325,52 @@ class TestFit:
                                                                                     rel=1e-3)
         assert torch.allclose(m2.scene.offsets, m.scene.offsets, atol=1e-3)
 
+    def test_per_cell_levels_render_on_the_grids_the_container_decodes(self, data, tmp_path):
+        """fit --quant-cells: each anchor's values lie on its cell's grid (channel step x 2^(level / 4)), the levels
+        move (a high level learning rate here), and the container (scene format 5, zstd and entropy-coded) decodes
+        to the PLY's attributes; a resumed run ends where an uninterrupted one does."""
+        from proxycodec.codec import decode, encode, stats
+        from proxycodec.model import SceneModel, weights_path_for
+        from proxycodec.proxy import load_fitted_predictor
+        from proxycodec.sections import anchor_levels, level_multipliers
+
+        cfg = small_config(iters=24, lambda_rate=1e-3, quant_cells=3, lr_quant_level=0.5)
+        out = tmp_path / "c.ply"
+        _fit(data, out, cfg)
+        m = SceneModel.load(out)
+        grids = m.scene.metadata["quant_steps"]
+        pos, voxel = m.scene.positions.numpy(), float(m.scene.voxel_size)
+        leaf = ~load_fitted_predictor(weights_path_for(out))[1]
+        tables = {k: np.asarray(g["levels"]["table"]) for k, g in grids.items()}
+        assert all(g["levels"]["cells"] == 3 for g in grids.values())
+        assert all(np.any(t != 0) for t in tables.values()), tables
+        off = m.scene.offsets.numpy().reshape(len(pos), -1)
+        lv = anchor_levels(grids["offsets"]["levels"], pos, voxel, leaf, ValueError)
+        assert len(np.unique(lv)) > 1
+        step = np.asarray(grids["offsets"]["step"])[None] * level_multipliers()[lv + 8][:, None]
+        k = (off - np.asarray(grids["offsets"]["origin"])) / step
+        assert np.abs(k - np.rint(k)).max() < 1e-3
+        k1 = (off - np.asarray(grids["offsets"]["origin"])) / np.asarray(grids["offsets"]["step"])
+        assert np.abs(k1 - np.rint(k1)).max() > 0.1  # not on the per-channel grid alone
+        for entropy in ("zstd", "model"):
+            rep = encode(out, tmp_path / f"c_{entropy}.pxc", max_cameras=1, entropy=entropy, entropy_iters=50)
+            assert rep.meta["scene_format"] == 5 and rep.meta["quant"]["offsets"]["levels"] == grids["offsets"]["levels"]
+            assert ("entropy" in rep.meta) == (entropy == "model")
+            lv = stats(rep.path)["quant_levels"]["offsets"]
+            table = np.asarray(grids["offsets"]["levels"]["table"])
+            assert (lv["cells"], lv["min"], lv["max"]) == (3, table.min(), table.max())
+            d = decode(rep.path).scene
+            dpos = d.positions.numpy()
+            a, b = np.lexsort(pos.T[::-1]), np.lexsort(dpos.T[::-1])
+            for name in ("offsets", "scalings"):
+                x, y = getattr(m.scene, name).numpy()[a], getattr(d, name).numpy()[b]
+                assert np.abs(x - y).max() <= 1e-5 * (1 + np.abs(x).max()), name
+        out2 = tmp_path / "c2.ply"
+        with pytest.raises(KeyboardInterrupt):
+            _fit(data, out2, cfg, stop_after=18)
+        _fit(data, out2, cfg, resume=True)
+        assert SceneModel.load(out2).scene.metadata["quant_steps"]["offsets"]["levels"] == grids["offsets"]["levels"]
+
     def test_l_recon_at_weight_zero_is_skipped_without_changing_the_run(self, data, monkeypatch):
         """lambda_recon 0 (the default) skips L_recon's predictor pass; the run is bit for bit the one that
         computes it and adds 0 times it (the leaf sample is still drawn)."""

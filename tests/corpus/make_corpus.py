@@ -73,17 +73,21 @@ def _hostile_gaussians() -> dict[str, bytes]:
 
 
 def scene_corpus() -> dict[str, bytes]:
-    """Entropy-coded scene containers (scene format 4) with hostile entropy sections behind valid CRCs: the golden
-    file with its ANS stream flipped, an escape too many, and integer nets that could overflow."""
+    """Entropy-coded scene containers (scene formats 4 and 5) with hostile sections or metadata behind valid CRCs:
+    the golden file with its ANS stream flipped, an escape too many, integer nets that could overflow; format 5's
+    with per-cell levels out of range (the other malformed level tables: ``test_entropy.HOSTILE_LEVELS``)."""
     import tempfile
 
-    from test_entropy import GOLDEN, HOSTILE, _rewrite
+    from test_entropy import GOLDEN, HOSTILE, HOSTILE_LEVELS, _rewrite
 
     out = {}
     with tempfile.TemporaryDirectory() as d:
         for case in ("stream_word_flipped", "escapes_extra", "nets_overflow"):
             meta_fn, arrays_fn = HOSTILE[case]
             out[f"{case}.pxc"] = _rewrite(GOLDEN / "scene_v4.pxc", Path(d) / "x.pxc", meta_fn, arrays_fn).read_bytes()
+        for case in ("levels_out_of_range",):
+            meta_fn, arrays_fn = HOSTILE_LEVELS[case]
+            out[f"{case}.pxc"] = _rewrite(GOLDEN / "scene_v5.pxc", Path(d) / "x.pxc", meta_fn, arrays_fn).read_bytes()
     return out
 
 
