@@ -276,8 +276,8 @@ def stats(file, as_json) -> None:
         click.echo(f"  positions {s['positions']}, offsets {s['offsets']}, bits {s['quant_bits']}, "
                    f"weights {s['weights_dtype']}, cell {p.get('cell_size_voxels', 0):g} voxels, seed {p.get('seed')}")
         for k, lv in (s.get("quant_levels") or {}).items():
-            click.echo(f"  {k}: per-cell quantisation levels on {lv['cells']}^3 cells, {lv['min']}..{lv['max']} "
-                       f"(step x 2^(level/4)); {lv['nonzero']} of {lv['entries']} entries away from 0")
+            click.echo(f"  {k}: per-cell quantisation levels (step x 2^(level/4)) on a {lv['cells']}^3 grid, "
+                       f"{lv['entries']} occupied cells (section quant/levels)")
         cv = s["metadata"].get("convert") if isinstance(s["metadata"], dict) else None
         if isinstance(cv, dict) and isinstance(cv.get("report"), dict):
             click.echo(f"  converted from the 3DGS PLY {(cv.get('source') or {}).get('name')}: "

@@ -42,7 +42,7 @@ from .scene import AnchorScene
 # The scene format (both halves) is torch-free; proxycodec.lite reads containers through it too.
 from .sections import (
     FLOAT_BITS, MAX_ANCHORS, OFFSETS, PREDICT_CHUNK, PROXY_FEATURES, SCALINGS, SCENE_FORMAT, SCENE_FORMAT_ENTROPY,
-    SCENE_FORMAT_LEVELS, SCENE_KIND, QuantizedAnchors, anchor_levels, encode_positions, level_table,
+    SCENE_FORMAT_LEVELS, SCENE_KIND, QuantizedAnchors, encode_positions, level_table,
     guarded, pack_weights, quantize_anchors, read_scene_container, scene_extras, scene_metadata, scene_sections,
     stored_anchors, weights_from_sections, zero_dead_offsets,
 )
@@ -300,7 +300,7 @@ def encode(
     err = ProxycodecError
     decoded = _model_from_sections(meta, sections, err)
     if cfg.drop_dead_offsets and not cfg.predict_offsets:
-        decoded = _drop_dead_offsets(decoded, sections, meta, q, cfg.dead_threshold, say, pos_sorted, voxel, mask)
+        decoded = _drop_dead_offsets(decoded, sections, meta, q, cfg.dead_threshold, say)
     if distilled is not None:
         meta["distill"]["held_out"] = _held_out(decoded, source_model, distilled, cfg, say)
     for k, v in (extra_meta or {}).items():  # the caller's word wins (convert: the source is the 3DGS PLY)
@@ -529,14 +529,13 @@ def _fit_predictor(cfg: EncodeConfig, predictor: ResidualPredictor | None, pos_s
 
 
 def _drop_dead_offsets(decoded: SceneModel, sections: dict, meta: dict, q: QuantizedAnchors, threshold: float,
-                       say: Progress, positions: np.ndarray, voxel: float, mask: np.ndarray) -> SceneModel:
+                       say: Progress) -> SceneModel:
     """Store the offsets of never-drawn neural Gaussians as 0 (``sections`` and ``meta`` updated in place);
     -> the decoded model of the result."""
     dead = ~_live_slots(decoded, threshold)  # [M, K] in stored (Morton) order
     if dead.any():
         qp = q.quant["offsets"]
-        lv = None if "levels" not in qp else anchor_levels(qp["levels"], positions, voxel, ~mask, ProxycodecError)
-        sections[OFFSETS] = zero_dead_offsets(sections[OFFSETS], qp, dead, lv)
+        sections[OFFSETS] = zero_dead_offsets(sections[OFFSETS], qp, dead, q.levels.get("offsets"))
         decoded = _model_from_sections(meta, sections, ProxycodecError)
     meta["offsets_dead"] = {"slots": int(dead.sum()), "of": int(dead.size), "threshold": threshold}
     say(f"{int(dead.sum())} of {dead.size} neural Gaussians are never drawn: their offsets are stored as 0")
@@ -759,17 +758,11 @@ def _scene_stats(meta: dict, infos, size: int) -> dict:
         "source_bytes": src, "ratio": (src / size) if src else None, "bytes_by_group": groups,
         "positions": meta.get("positions", {}).get("mode"), "offsets": meta.get("offsets"),
         "proxy": meta.get("proxy"), "quant_bits": {k: v.get("bits") for k, v in meta.get("quant", {}).items()},
-        "quant_levels": {k: _level_summary(v["levels"]) for k, v in meta.get("quant", {}).items()
-                         if isinstance(v, dict) and "levels" in v},
+        "quant_levels": {k: {"cells": v["levels"].get("cells"), "entries": v["levels"].get("entries")}
+                         for k, v in meta.get("quant", {}).items()
+                         if isinstance(v, dict) and isinstance(v.get("levels"), dict)},
         "weights_dtype": meta.get("weights_dtype"), "distill": meta.get("distill"),
     }
-
-
-def _level_summary(info) -> dict:
-    """A per-cell level table in a few numbers (``stats``): cells per axis, the level range, the cells away from 0."""
-    G, table = level_table(info, ValueError)
-    return {"cells": G, "min": int(table.min()), "max": int(table.max()), "nonzero": int((table != 0).sum()),
-            "entries": int(table.size)}
 
 
 def _ply_stats(path: Path, scaffold_mlps: list[Path] | None = None, scaffold_mode: str | None = None) -> dict:

@@ -18,7 +18,7 @@ import functools
 import math
 import os
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -61,6 +61,8 @@ SCALINGS = "anchors/scalings"  # [6, M] quantised
 OFFSETS = "anchors/offsets"  # [3K, M] quantised: every anchor's offsets ("stored" mode)
 PROXY_FEATURES = "proxy/features"  # [F, P] quantised
 PROXY_OFFSETS = "proxy/offsets"  # [3K, P] quantised: the proxies' offsets only ("predicted" mode)
+LEVELS = "quant/levels"  # int8 [n]: scene format 5's per-cell levels of the occupied cells (``level_entries``)
+LEVEL_ATTRS = ("features", "scalings", "offsets")  # the order of their entries in LEVELS
 
 ErrorFactory = Callable[[str], ProxycodecError]
 
@@ -90,8 +92,8 @@ def position_cells(positions: np.ndarray, voxel: float, cells: int) -> np.ndarra
 
 
 def level_table(info, err) -> tuple[int, np.ndarray]:
-    """A ``levels`` entry of the quantisation metadata, checked: (cells per axis G, table [2, G^3] int64: row 0 the
-    proxies' levels, row 1 the leaves', by cell)."""
+    """A full level table (``quant_steps[attribute]["levels"]`` in a fitted scene's metadata), checked: (cells per
+    axis G, table [2, G^3] int64: row 0 the proxies' levels, row 1 the leaves', by cell)."""
     if not isinstance(info, dict):
         raise err("bad quantisation levels")
     G, table = info.get("cells"), info.get("table")
@@ -104,9 +106,85 @@ def level_table(info, err) -> tuple[int, np.ndarray]:
 
 
 def anchor_levels(info, positions: np.ndarray, voxel: float, leaf: np.ndarray, err) -> np.ndarray:
-    """[N] int64: the quantisation level of each anchor (``positions`` [N, 3] of the whole scene; ``leaf`` [N])."""
+    """[N] int64: the quantisation level of each anchor under a full table (``positions`` [N, 3] of the whole
+    scene; ``leaf`` [N])."""
     G, table = level_table(info, err)
     return table[np.asarray(leaf, np.int64), position_cells(positions, voxel, G)]
+
+
+def _occupied(cells: np.ndarray, leaf: np.ndarray, rows: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """For the stored ``rows`` of an attribute: per kind (proxies, then leaves) present among them, (the rows'
+    positions among the stored ones, the ascending occupied cells)."""
+    out = []
+    stored_leaf = leaf[rows]
+    stored_cells = cells[rows]
+    for kind in (False, True):
+        where = np.flatnonzero(stored_leaf == kind)
+        if len(where):
+            out.append((where, np.unique(stored_cells[where])))
+    return out
+
+
+def level_entries(levels: np.ndarray, cells: np.ndarray, leaf: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """int8 entries of one attribute in ``LEVELS``: for each kind (proxies, then leaves) among the stored ``rows``,
+    the level of each occupied cell in ascending cell order (empty cells cost nothing). ``levels``: the stored rows'
+    levels (equal within a cell and kind)."""
+    parts = []
+    for where, occ in _occupied(cells, leaf, rows):
+        first = np.zeros(len(occ), np.int64)
+        idx = np.searchsorted(occ, cells[rows][where])
+        first[idx[::-1]] = where[::-1]  # any row of the cell: they share its level
+        parts.append(levels[first])
+    return np.concatenate(parts).astype(np.int8) if parts else np.zeros(0, np.int8)
+
+
+def levels_from_entries(entries: np.ndarray, cells: np.ndarray, leaf: np.ndarray, rows: np.ndarray, err
+                        ) -> np.ndarray:
+    """Inverse of ``level_entries``: the stored rows' levels [len(rows)] (``entries`` exactly as many as needed)."""
+    out = np.zeros(int(rows.sum()), np.int64)
+    used = 0
+    for where, occ in _occupied(cells, leaf, rows):
+        if used + len(occ) > len(entries):
+            raise err(f"section {LEVELS!r} is shorter than the occupied cells need")
+        out[where] = entries[used:used + len(occ)][np.searchsorted(occ, cells[rows][where])]
+        used += len(occ)
+    if used != len(entries):
+        raise err(f"section {LEVELS!r} does not match the occupied cells")
+    return out
+
+
+def stored_rows(name: str, mask: np.ndarray, predict_offsets: bool) -> np.ndarray:
+    """[M] bool: the anchors whose rows attribute ``name`` stores."""
+    return mask if name == "features" or (name == "offsets" and predict_offsets) else np.ones(len(mask), bool)
+
+
+def read_levels(quant: dict, sections: dict[str, np.ndarray], positions: np.ndarray, voxel: float, mask: np.ndarray,
+                predict_offsets: bool, err) -> dict[str, np.ndarray]:
+    """Scene format 5: per attribute with ``levels``, the stored rows' levels, from ``LEVELS`` (checked: cells per
+    axis, levels in range, entries consumed exactly)."""
+    names = [k for k in LEVEL_ATTRS if isinstance(quant.get(k), dict) and "levels" in quant[k]]
+    if not names:
+        return {}
+    sec = sections.get(LEVELS)
+    if sec is None or sec.dtype != np.int8 or sec.ndim != 1:
+        raise err(f"missing or malformed section {LEVELS!r}")
+    if sec.size and np.abs(sec.astype(np.int64)).max() > LEVEL_MAX:
+        raise err(f"section {LEVELS!r}: a level outside [-{LEVEL_MAX}, {LEVEL_MAX}]")
+    out, used = {}, 0
+    for k in names:
+        info = quant[k]["levels"]
+        G, n = (info.get("cells"), info.get("entries")) if isinstance(info, dict) else (None, None)
+        if not (isinstance(G, int) and not isinstance(G, bool) and 1 <= G <= MAX_LEVEL_CELLS):
+            raise err(f"bad quantisation level cells {G!r}")
+        if not (isinstance(n, int) and not isinstance(n, bool) and 0 <= n <= sec.size - used):
+            raise err(f"bad quantisation level entries {n!r} for {k}")
+        leaf = ~mask
+        out[k] = levels_from_entries(sec[used:used + n].astype(np.int64), position_cells(positions, voxel, G), leaf,
+                                     stored_rows(k, mask, predict_offsets), err)
+        used += n
+    if used != sec.size:
+        raise err(f"section {LEVELS!r} is longer than its levels")
+    return out
 
 
 def dequantize(q: np.ndarray, params: dict, name: str, err, levels: np.ndarray | None = None) -> np.ndarray:
@@ -309,6 +387,7 @@ class QuantizedAnchors:
     quant: dict  # meta["quant"]: per attribute, bits and per-channel offset/scale
     features: np.ndarray  # [M, F]: the proxies' rows dequantised, the leaves' rows as given
     offsets: np.ndarray  # [M, K, 3]: the stored rows dequantised (the leaves' as given when predicted)
+    levels: dict[str, np.ndarray] = field(default_factory=dict)  # format 5: the stored rows' levels, per attribute
 
 
 def quantize_anchors(features: np.ndarray, offsets: np.ndarray, scalings: np.ndarray, proxy_mask: np.ndarray, *,
@@ -324,19 +403,16 @@ def quantize_anchors(features: np.ndarray, offsets: np.ndarray, scalings: np.nda
     M, K = offsets.shape[:2]
     mask = proxy_mask
     steps = steps or {}
-    rows = {"scalings": np.ones(M, bool), "features": mask, "offsets": mask if predict_offsets else np.ones(M, bool)}
     lv: dict[str, np.ndarray] = {}
     for name, g in steps.items():
         if len(g) > 2:
-            lv[name] = anchor_levels(g[2], positions, voxel, ~mask, err)[rows[name]]
+            lv[name] = anchor_levels(g[2], positions, voxel, ~mask, err)[stored_rows(name, mask, predict_offsets)]
 
     def quant(x, bits, name):
         if name not in steps:
             return quantize(x, bits)
         q, params = quantize_step(x, steps[name][0], steps[name][1], lv.get(name))
-        if "zero" in params:
-            params["levels"] = steps[name][2]
-        else:
+        if "zero" not in params:
             lv.pop(name, None)  # too fine for 16 bits: the channel's range instead (``quantize_step``)
         return q, params
 
@@ -353,7 +429,17 @@ def quantize_anchors(features: np.ndarray, offsets: np.ndarray, scalings: np.nda
     else:
         off_dq = od
     sections = {SCALINGS: q_scal, PROXY_FEATURES: q_feat, (PROXY_OFFSETS if predict_offsets else OFFSETS): q_off}
-    return QuantizedAnchors(sections, {"scalings": qp_scal, "features": qp_feat, "offsets": qp_off}, feat_dq, off_dq)
+    quant = {"scalings": qp_scal, "features": qp_feat, "offsets": qp_off}
+    if lv:  # scene format 5: the occupied cells' levels, one section
+        entries = []
+        for name in (k for k in LEVEL_ATTRS if k in lv):
+            G = int(steps[name][2]["cells"])
+            e = level_entries(lv[name], position_cells(positions, voxel, G), ~mask,
+                              stored_rows(name, mask, predict_offsets))
+            quant[name]["levels"] = {"cells": G, "entries": int(e.size)}
+            entries.append(e)
+        sections[LEVELS] = np.concatenate(entries)
+    return QuantizedAnchors(sections, quant, feat_dq, off_dq, lv)
 
 
 def weights_to_sections(prefix: str, arrays: dict[str, np.ndarray], dtype: str) -> dict[str, np.ndarray]:
@@ -598,24 +684,20 @@ def stored_anchors(meta: dict, sections: dict[str, np.ndarray], err: ErrorFactor
             raise err("entropy coding covers stored offsets only")
         sections = {**sections, **entropy_sections(meta["entropy"], sections, pos, voxel, mask, Fd, K, q, err)}
 
-    def levels(name: str, rows: np.ndarray) -> np.ndarray | None:
-        info = q[name].get("levels")
-        return None if info is None else anchor_levels(info, pos, voxel, ~mask, err)[rows]
-
-    every = np.ones(M, bool)
+    offsets_mode = meta["offsets"]
+    lv = read_levels(q, sections, pos, voxel, mask, offsets_mode == "predicted", err)
     scal = dequantize(_section(sections, SCALINGS, err, (6, M), "uf"), q["scalings"],
-                      SCALINGS, err, levels("scalings", every)).T
+                      SCALINGS, err, lv.get("scalings")).T
     feats = np.zeros((M, Fd), dtype=np.float32)
     feats[mask] = dequantize(_section(sections, PROXY_FEATURES, err, (Fd, P), "uf"), q["features"],
-                             PROXY_FEATURES, err, levels("features", mask)).T
-    offsets_mode = meta["offsets"]
+                             PROXY_FEATURES, err, lv.get("features")).T
     if offsets_mode == "stored":
         offs = dequantize(_section(sections, OFFSETS, err, (3 * K, M), "uf"), q["offsets"],
-                          OFFSETS, err, levels("offsets", every)).T.reshape(M, K, 3)
+                          OFFSETS, err, lv.get("offsets")).T.reshape(M, K, 3)
     elif offsets_mode == "predicted":
         offs = np.zeros((M, K, 3), dtype=np.float32)
         offs[mask] = dequantize(_section(sections, PROXY_OFFSETS, err, (3 * K, P), "uf"), q["offsets"],
-                                PROXY_OFFSETS, err, levels("offsets", mask)).T.reshape(P, K, 3)
+                                PROXY_OFFSETS, err, lv.get("offsets")).T.reshape(P, K, 3)
     else:
         raise err(f"unknown offsets mode {offsets_mode!r}")
     # networks

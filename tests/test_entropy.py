@@ -244,10 +244,18 @@ def test_golden_containers_decode_to_their_committed_hashes(name):
     if name != "scene_v5.pxc":
         assert want[name] == want["scene_v2.pxc"]  # the same scene and symbols in every format
     else:
-        meta = read_scene_container(path).meta
-        assert meta["scene_format"] == 5 and "entropy" in meta
-        assert {k: q["levels"] for k, q in meta["quant"].items()} == {k: g["levels"]
-                                                                      for k, g in golden_steps().items()}
+        c = read_scene_container(path)
+        assert c.meta["scene_format"] == 5 and "entropy" in c.meta
+        assert {k: q["levels"]["cells"] for k, q in c.meta["quant"].items()} == {k: 2 for k in golden_steps()}
+        # the stored levels are the golden table's at the occupied cells
+        from proxycodec.sections import LEVELS, anchor_levels, read_levels
+
+        a = stored_anchors(c.meta, dict(c.arrays), _err)
+        got = read_levels(c.meta["quant"], c.arrays, a.positions, a.voxel_size, a.proxy_mask, False, _err)
+        for k, g in golden_steps().items():
+            want = anchor_levels(g["levels"], a.positions, a.voxel_size, ~a.proxy_mask, _err)
+            assert np.array_equal(got[k], want[a.proxy_mask] if k == "features" else want), k
+        assert c.arrays[LEVELS].size == sum(q["levels"]["entries"] for q in c.meta["quant"].values())
     m, lt = codec.decode(path), lite.decode(path)
     assert torch.isfinite(m.scene.features).all()
     np.testing.assert_allclose(lt.features, m.scene.features.numpy(), atol=1e-5)
@@ -304,17 +312,28 @@ def _levels(m, attr, **kw):
     return _quant(m, attr, levels={**m["quant"][attr]["levels"], **kw})
 
 
+def _level_section(fn):
+    from proxycodec.sections import LEVELS
+
+    return lambda a: _set(a, LEVELS, fn(a[LEVELS]))
+
+
 HOSTILE_LEVELS = {
     "levels_format_4_claimed": (lambda m: {**m, "scene_format": 4}, None),
     "levels_dropped": (lambda m: {**m, "quant": {k: {f: v for f, v in q.items() if f != "levels"}
                                                  for k, q in m["quant"].items()}}, None),
-    "levels_out_of_range": (lambda m: _levels(m, "offsets", table=[9] * len(m["quant"]["offsets"]["levels"]["table"])),
-                            None),
-    "levels_table_short": (lambda m: _levels(m, "scalings", table=[0]), None),
+    "levels_out_of_range": (None, _level_section(lambda x: np.full_like(x, 9))),
+    "levels_min_int8": (None, _level_section(lambda x: np.full_like(x, -128))),
+    "levels_section_short": (None, _level_section(lambda x: x[:-1])),
+    "levels_section_long": (None, _level_section(lambda x: np.concatenate([x, x[:1]]))),
+    "levels_section_int16": (None, _level_section(lambda x: x.astype(np.int16))),
+    "levels_section_missing": (None, lambda a: {k: v for k, v in a.items() if k != "quant/levels"}),
+    "levels_entries_wrong": (lambda m: _levels(m, "scalings", entries=m["quant"]["scalings"]["levels"]["entries"] + 1),
+                             None),
+    "levels_entries_huge": (lambda m: _levels(m, "scalings", entries=1 << 40), None),
     "levels_cells_zero": (lambda m: _levels(m, "features", cells=0), None),
     "levels_cells_huge": (lambda m: _levels(m, "features", cells=1 << 20), None),
-    "levels_float": (lambda m: _levels(m, "offsets", table=[0.5] * len(m["quant"]["offsets"]["levels"]["table"])),
-                     None),
+    "levels_cells_other": (lambda m: _levels(m, "offsets", cells=3), None),
     "levels_not_a_dict": (lambda m: _quant(m, "offsets", levels=[1, 2]), None),
     "levels_zero_missing": (lambda m: {**m, "quant": {**m["quant"], "offsets": {
         f: v for f, v in m["quant"]["offsets"].items() if f != "zero"}}}, None),

@@ -332,7 +332,7 @@ class TestFit:
         from proxycodec.codec import decode, encode, stats
         from proxycodec.model import SceneModel, weights_path_for
         from proxycodec.proxy import load_fitted_predictor
-        from proxycodec.sections import anchor_levels, level_multipliers
+        from proxycodec.sections import anchor_levels, level_multipliers, position_cells
 
         cfg = small_config(iters=24, lambda_rate=1e-3, quant_cells=3, lr_quant_level=0.5)
         out = tmp_path / "c.ply"
@@ -354,11 +354,12 @@ class TestFit:
         assert np.abs(k1 - np.rint(k1)).max() > 0.1  # not on the per-channel grid alone
         for entropy in ("zstd", "model"):
             rep = encode(out, tmp_path / f"c_{entropy}.pxc", max_cameras=1, entropy=entropy, entropy_iters=50)
-            assert rep.meta["scene_format"] == 5 and rep.meta["quant"]["offsets"]["levels"] == grids["offsets"]["levels"]
+            assert rep.meta["scene_format"] == 5 and rep.meta["quant"]["offsets"]["levels"]["cells"] == 3
             assert ("entropy" in rep.meta) == (entropy == "model")
-            lv = stats(rep.path)["quant_levels"]["offsets"]
-            table = np.asarray(grids["offsets"]["levels"]["table"])
-            assert (lv["cells"], lv["min"], lv["max"]) == (3, table.min(), table.max())
+            cells = position_cells(pos, voxel, 3)  # offsets: every anchor's, one entry per occupied cell and kind
+            occupied = len(np.unique(cells[leaf])) + len(np.unique(cells[~leaf]))
+            assert stats(rep.path)["quant_levels"]["offsets"] == {"cells": 3, "entries": occupied}
+            assert occupied >= len(np.unique(cells))
             d = decode(rep.path).scene
             dpos = d.positions.numpy()
             a, b = np.lexsort(pos.T[::-1]), np.lexsort(dpos.T[::-1])
