@@ -57,6 +57,8 @@ def _stderr(msg: str) -> None:
 @encode_option("--entropy-iters", show_default=True, type=int, help="Iterations fitting the entropy model.")
 @encode_option("--lambda-rate", show_default=True, type=click.FloatRange(0.0),
                help="With distillation: weight of the rate term (noise quantisation, learned steps per channel).")
+@encode_option("--quant-cells", show_default=True, type=click.IntRange(0, 32),
+               help="With distillation and --lambda-rate: learn per-cell quantisation levels (as fit --quant-cells).")
 @encode_option("--learned-steps/--no-learned-steps", show_default=True,
                help="Quantise with the steps rate training learned (fit --lambda-rate) instead of the bit depths.")
 @encode_option("--seed", show_default=True, type=int)
@@ -80,7 +82,7 @@ def _stderr(msg: str) -> None:
 def encode(scene, out, weights, proxy_ratio, proxy_selection, cell_size, feature_bits, offset_bits, scaling_bits,
            weights_dtype, predict_offsets, max_cameras, drop_dead_offsets, predictor_context, predictor_iters, leaf_sample,
            zstd_level,
-           entropy, entropy_iters, lambda_rate, learned_steps, seed,
+           entropy, entropy_iters, lambda_rate, quant_cells, learned_steps, seed,
            refit_predictor, distill, distill_iters, distill_time_budget, distill_views, images, keep_anchor_scene,
            voxel_size, views, view_size, background, max_width, as_json) -> None:
     """Compress an anchor scene (Scaffold-GS PLY + weights sidecar, or a trained Scaffold-GS output: its folder or
@@ -103,7 +105,8 @@ def encode(scene, out, weights, proxy_ratio, proxy_selection, cell_size, feature
                  feature_bits=feature_bits, offset_bits=offset_bits, scaling_bits=scaling_bits,
                  weights_dtype=weights_dtype, predict_offsets=predict_offsets, max_cameras=max_cameras,
                  predictor_context=predictor_context, predictor_iters=predictor_iters, leaf_sample=leaf_sample, zstd_level=zstd_level, seed=seed,
-                 entropy=entropy, entropy_iters=entropy_iters, lambda_rate=lambda_rate, learned_steps=learned_steps)
+                 entropy=entropy, entropy_iters=entropy_iters, lambda_rate=lambda_rate, quant_cells=quant_cells,
+                 learned_steps=learned_steps)
     if not p.is_dir() and is_inria_ply(p):
         from ..convert import convert_and_encode
         from .convert import make_config

@@ -87,6 +87,7 @@ class EncodeConfig:
     entropy_hidden: int = 16  # [D] lego at lambda 1e-4: 142,760 B against 146,315 B with 32 (nets halved, stream +1.3 KB)
     # Rate in distillation's loss (``FitConfig.lambda_rate``): noise quantisation with learned steps per channel.
     lambda_rate: float = 0.0
+    quant_cells: int = 0  # with lambda_rate: per-cell quantisation levels (``FitConfig.quant_cells``; scene format 5)
     # Quantise with the steps rate training learned (the scene's ``quant_steps`` metadata) instead of the bit depths.
     learned_steps: bool = True
     seed: int = 0
@@ -141,6 +142,11 @@ class EncodeConfig:
             raise ProxycodecError(f"distill learning-rate scale must be >= 0, got {self.distill_lr_scale}")
         if self.distill_views < 1:
             raise ProxycodecError(f"distill views must be >= 1, got {self.distill_views}")
+        if self.quant_cells and not (self.lambda_rate > 0 and self.distill is not False):
+            raise ProxycodecError("quant cells are learned by distillation's rate term: give lambda_rate > 0 "
+                                  "(and do not turn distillation off)")
+        if not 0 <= self.quant_cells <= 32:
+            raise ProxycodecError(f"quant cells must be in [0, 32], got {self.quant_cells}")
         if self.images is not None and self.distill is False:
             raise ProxycodecError("images are for distillation: drop --no-distill")
         return self
@@ -425,7 +431,7 @@ def _distill(model: SceneModel, fitted: tuple, cfg: EncodeConfig, say: Progress)
         predictor_hidden=cfg.predictor_hidden, predictor_blocks=cfg.predictor_blocks,
         predictor_context=cfg.predictor_context, predict_offsets=bool(cfg.predict_offsets),
         lr_warmup=cfg.distill_lr_warmup, xi_full_share=0.0,  # as distillation was measured (SPEC.md section 4)
-        lambda_rate=cfg.lambda_rate)
+        lambda_rate=cfg.lambda_rate, quant_cells=cfg.quant_cells)
     views = None
     if cfg.images is not None:
         from .formats.datasets import load_dataset

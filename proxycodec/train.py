@@ -204,6 +204,9 @@ class FitConfig:
             raise ProxycodecError(f"lambda_rate must be >= 0, got {self.lambda_rate}")
         if not (0 <= self.quant_cells <= MAX_LEVEL_CELLS):
             raise ProxycodecError(f"quantisation cells must be in [0, {MAX_LEVEL_CELLS}], got {self.quant_cells}")
+        if self.quant_cells and not self.lambda_rate > 0:
+            raise ProxycodecError("per-cell quantisation levels (quant cells) are learned by the rate term: "
+                                  "give lambda_rate > 0")
         if not (0.0 <= self.lr_warmup < 1.0):
             raise ProxycodecError(f"learning-rate warm-up must be a fraction of the run in [0, 1), got {self.lr_warmup}")
         if self.predictor_warmup < 0:

@@ -153,6 +153,11 @@ def test_distillation_with_the_rate_term_stores_its_learned_grids(pair, tmp_path
     q, q0 = rated.meta["quant"]["offsets"], dist.meta["quant"]["offsets"]
     assert q["scale"] != q0["scale"] and q["bits"] <= q0["bits"]
     assert rated.file_bytes < dist.file_bytes
+    # encode --quant-cells: distillation's rate term learns per-cell levels too (scene format 5)
+    cells = codec.encode(m, tmp_path / "cells.pxc", **{**QUICK, "lambda_rate": 1e-2, "distill_iters": 60,
+                                                      "quant_cells": 2})
+    assert cells.meta["scene_format"] == 5 and cells.meta["quant"]["offsets"]["levels"]["cells"] == 2
+    assert codec.decode(cells.path).scene.offsets.shape == m.scene.offsets.shape
 
 
 def test_a_scene_without_a_stage2_predictor_is_distilled_by_default(tmp_path, monkeypatch):
@@ -179,7 +184,8 @@ def test_bad_distillation_settings_are_user_errors(tmp_path):
 
     m = _model(60)
     for bad in ({"distill_iters": 0}, {"distill_iters": None, "distill_time_budget": None},
-                {"distill_views": 0}, {"distill": False, "images": str(tmp_path)}):
+                {"distill_views": 0}, {"distill": False, "images": str(tmp_path)}, {"quant_cells": 4},
+                {"quant_cells": 4, "lambda_rate": 1e-3, "distill": False}, {"quant_cells": 33, "lambda_rate": 1e-3}):
         with pytest.raises(ProxycodecError):
             codec.encode(m, tmp_path / "x.pxc", **{**QUICK, **bad})
     assert not (tmp_path / "x.pxc").exists()

@@ -102,6 +102,11 @@ class TestConfig:
             FitConfig(xi_min=0.5, xi_max=0.2)
         with pytest.raises(ProxycodecError, match="proxy selection"):
             FitConfig(proxy_selection="fps")
+        with pytest.raises(ProxycodecError, match="rate term"):
+            FitConfig(quant_cells=8, lambda_rate=0.0)
+        with pytest.raises(ProxycodecError, match="quantisation cells"):
+            FitConfig(quant_cells=33)
+        assert FitConfig(quant_cells=8).quant_cells == 8
 
     def test_anchor_growing_ends_where_stage_2_starts_unless_told_otherwise(self):
         from proxycodec.train import FitConfig
