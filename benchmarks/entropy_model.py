@@ -1,10 +1,10 @@
 """The entropy model against zstd alone, on the same scene, in one run (issue #17).
 
 For each scene given (anchor PLY + weights sidecar, e.g. a ``fit`` output, with or without ``--lambda-rate``):
-encode it with ``--entropy zstd`` (scene format 2) and ``--entropy model`` (scene format 4), same options
-otherwise, and report
+encode it with ``--entropy zstd`` (scene format 2) and ``--entropy model`` (scene format 4; both format 5 for a scene
+fitted with ``--quant-cells``), same options otherwise, and report
 
-- bytes section by section (positions, split, proxy features, scalings, offsets, decoder and predictor weights,
+- bytes section by section (positions, split, proxy features, scalings, offsets, per-cell levels, decoder and predictor weights,
   the entropy model's nets and escapes, metadata), the ratio to PLY + weights, bits per anchor and bytes per drawn
   Gaussian (the neural Gaussians with positive opacity from the stored cameras at 100%: what a renderer draws);
 - encode time (median of ``--repeats``), and fresh-process decode + render of one 30% view
@@ -36,7 +36,8 @@ REPO = Path(__file__).resolve().parent.parent
 RES = ",".join(f"{r / 10:.1f}" for r in range(1, 11))
 GROUPS = {"positions": ("anchors/grid", "anchors/xyz"), "split": ("anchors/proxy_mask",),
           "proxy features": ("proxy/features",), "scalings": ("anchors/scalings",),
-          "offsets": ("anchors/offsets", "proxy/offsets"), "decoder": ("decoder/",), "predictor": ("predictor/",),
+          "offsets": ("anchors/offsets", "proxy/offsets"), "quant levels": ("quant/levels",),
+          "decoder": ("decoder/",), "predictor": ("predictor/",),
           "entropy stream": ("entropy/stream",), "entropy nets + escapes": ("entropy/nets", "entropy/escapes"),
           "metadata + header": ("meta",)}
 
@@ -147,9 +148,11 @@ def table(rows: list[dict]) -> str:
         z, m = row["zstd"], row["model"]
         lines += [f"### {row.get('label', Path(row['scene']).stem)} ({Path(row['scene']).name}"
                   f"{', ' + row['curve'] if row.get('curve') else ''})", "",
-                  "| section | zstd only (format 2) | entropy model (format 4) |", "|---|---:|---:|"]
+                  f"| section | zstd only (format {z.get('scene_format', 2)}) | entropy model (format "
+                  f"{m.get('scene_format', 4)}) |", "|---|---:|---:|"]
         for g in GROUPS:
-            lines.append(f"| {g} | {z['groups'][g]:,} | {m['groups'][g]:,} |")
+            if g in z["groups"] or g in m["groups"]:  # (rows of older runs lack the newer groups)
+                lines.append(f"| {g} | {z['groups'].get(g, 0):,} | {m['groups'].get(g, 0):,} |")
         if "entropy_bytes" in m:
             eb = m["entropy_bytes"]
             lines.append(f"| (in the stream: features / scalings / offsets) | | "
