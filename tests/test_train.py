@@ -51,6 +51,23 @@ def _fit(data, out, cfg, **kw):
     return fit(data, out, cfg, dataset_root="tiny", log=lambda s: None, **kw)
 
 
+def _assert_stored_as_fitted(fitted, decoded) -> None:
+    """The container's offsets and scalings are the fitted scene's (matched by position; float32 rounding only)."""
+    pos, dpos = fitted.positions.numpy(), decoded.positions.numpy()
+    a, b = np.lexsort(pos.T[::-1]), np.lexsort(dpos.T[::-1])
+    for name in ("offsets", "scalings"):
+        x, y = getattr(fitted, name).numpy()[a], getattr(decoded, name).numpy()[b]
+        assert np.abs(x - y).max() <= 1e-5 * (1 + np.abs(x).max()), name
+
+
+def _fit_interrupted_and_resumed(data, out, cfg):
+    """``cfg``'s fit interrupted at iteration 18 (a checkpoint), then resumed to the end: -> ``out``."""
+    with pytest.raises(KeyboardInterrupt):
+        _fit(data, out, cfg, stop_after=18)
+    _fit(data, out, cfg, resume=True)
+    return out
+
+
 # ------------------------------------------------------------------------------------------------ metrics
 class TestMetrics:
     def test_psnr_of_known_mse(self):
@@ -315,17 +332,8 @@ class TestFit:
         assert np.abs(k - np.rint(k)).max() < 1e-3
         rep = encode(out, tmp_path / "r.pxc", max_cameras=1, entropy="model", entropy_iters=50)
         assert rep.meta["quant"]["offsets"]["scale"] == pytest.approx(grids["offsets"]["step"])
-        d = decode(rep.path).scene
-        pos, dpos = m.scene.positions.numpy(), d.positions.numpy()
-        a, b = np.lexsort(pos.T[::-1]), np.lexsort(dpos.T[::-1])
-        for name in ("offsets", "scalings"):
-            x, y = getattr(m.scene, name).numpy()[a], getattr(d, name).numpy()[b]
-            assert np.abs(x - y).max() <= 1e-5 * (1 + np.abs(x).max()), name
-        out2 = tmp_path / "r2.ply"
-        with pytest.raises(KeyboardInterrupt):
-            _fit(data, out2, cfg, stop_after=18)
-        _fit(data, out2, cfg, resume=True)
-        m2 = SceneModel.load(out2)
+        _assert_stored_as_fitted(m.scene, decode(rep.path).scene)
+        m2 = SceneModel.load(_fit_interrupted_and_resumed(data, tmp_path / "r2.ply", cfg))
         assert m2.scene.metadata["quant_steps"]["offsets"]["step"] == pytest.approx(grids["offsets"]["step"],
                                                                                     rel=1e-3)
         assert torch.allclose(m2.scene.offsets, m.scene.offsets, atol=1e-3)
@@ -365,17 +373,9 @@ class TestFit:
             occupied = len(np.unique(cells[leaf])) + len(np.unique(cells[~leaf]))
             assert stats(rep.path)["quant_levels"]["offsets"] == {"cells": 3, "entries": occupied}
             assert occupied >= len(np.unique(cells))
-            d = decode(rep.path).scene
-            dpos = d.positions.numpy()
-            a, b = np.lexsort(pos.T[::-1]), np.lexsort(dpos.T[::-1])
-            for name in ("offsets", "scalings"):
-                x, y = getattr(m.scene, name).numpy()[a], getattr(d, name).numpy()[b]
-                assert np.abs(x - y).max() <= 1e-5 * (1 + np.abs(x).max()), name
-        out2 = tmp_path / "c2.ply"
-        with pytest.raises(KeyboardInterrupt):
-            _fit(data, out2, cfg, stop_after=18)
-        _fit(data, out2, cfg, resume=True)
-        assert SceneModel.load(out2).scene.metadata["quant_steps"]["offsets"]["levels"] == grids["offsets"]["levels"]
+            _assert_stored_as_fitted(m.scene, decode(rep.path).scene)
+        m2 = SceneModel.load(_fit_interrupted_and_resumed(data, tmp_path / "c2.ply", cfg))
+        assert m2.scene.metadata["quant_steps"]["offsets"]["levels"] == grids["offsets"]["levels"]
 
     def test_l_recon_at_weight_zero_is_skipped_without_changing_the_run(self, data, monkeypatch):
         """lambda_recon 0 (the default) skips L_recon's predictor pass; the run is bit for bit the one that
