@@ -133,7 +133,7 @@ def level_entries(levels: np.ndarray, cells: np.ndarray, leaf: np.ndarray, rows:
     for where, occ in _occupied(cells, leaf, rows):
         first = np.zeros(len(occ), np.int64)
         idx = np.searchsorted(occ, cells[rows][where])
-        first[idx[::-1]] = where[::-1]  # any row of the cell: they share its level
+        first[idx] = where  # a row of each cell (any: they share its level)
         parts.append(levels[first])
     return np.concatenate(parts).astype(np.int8) if parts else np.zeros(0, np.int8)
 

@@ -95,6 +95,27 @@ def test_level_multipliers_are_float32_powers_of_two_with_a_committed_hash():
     assert digest == json.loads((GOLDEN / "hashes.json").read_text())["level_multipliers"]
 
 
+@pytest.mark.parametrize("G", [1, 3, 7])
+def test_level_entries_hold_one_level_per_occupied_cell_and_kind_and_round_trip(G):
+    from proxycodec.sections import anchor_levels, level_entries, levels_from_entries, position_cells
+
+    rng = np.random.default_rng(G)
+    pos = (rng.integers(-40, 40, (300, 3)) * 0.05).astype(np.float32)
+    mask = rng.random(300) < 0.3
+    table = rng.integers(-8, 9, 2 * G ** 3).tolist()
+    info = {"cells": G, "table": table}
+    cells = position_cells(pos, 0.05, G)
+    assert cells.min() >= 0 and cells.max() < G ** 3
+    for rows in (np.ones(300, bool), mask):  # every anchor's rows (scalings, offsets); the proxies' (features)
+        lv = anchor_levels(info, pos, 0.05, ~mask, _err)[rows]
+        e = level_entries(lv, cells, ~mask, rows)
+        n_occupied = len(np.unique(cells[rows & mask])) + len(np.unique(cells[rows & ~mask]))
+        assert e.dtype == np.int8 and e.size == n_occupied
+        assert np.array_equal(levels_from_entries(e.astype(np.int64), cells, ~mask, rows, _err), lv)
+        with pytest.raises(ProxycodecError):
+            levels_from_entries(e[:-1].astype(np.int64), cells, ~mask, rows, _err)
+
+
 def _random_net(rng, n_in, hidden, n_out, big=False) -> entropy.IntNet:
     sizes = [n_in, hidden, hidden, 2 * n_out]
     Ws = tuple((np.full((o, i), 127, np.int8) * rng.choice([-1, 1], (o, i)).astype(np.int8)) if big
