@@ -112,7 +112,8 @@ _no_undistort_option = click.option(
 @user_errors
 def fit(dataset, out, iters, time_budget, max_width, seed, no_gate, embedding, fixed_res, xi_sampling, xi_full_share,
         film_hidden, stats_min_xi, no_proxies, proxy_ratio, proxy_selection, predictor_hidden, predictor_blocks,
-        predictor_warmup, predictor_context, predict_offsets, lambda_rate, quant_cells, stage2_start, recon_loss, lambda_recon, predictor_kind,
+        predictor_warmup, predictor_context, predict_offsets, lambda_rate, quant_cells, stage2_start, recon_loss,
+        lambda_recon, predictor_kind,
         gate_kappa, gate_eta, voxel_size, init_points, images, test_every, no_undistort, resume, checkpoint_every,
         keep_checkpoint, backend, explicit, sh_degree) -> None:
     """Train an anchor scene on DATASET (Blender or COLMAP folder, detected by its files) and write OUT

@@ -41,8 +41,8 @@ from .proxy import (
 from .scene import AnchorScene
 # The scene format (both halves) is torch-free; proxycodec.lite reads containers through it too.
 from .sections import (
-    FLOAT_BITS, MAX_ANCHORS, OFFSETS, PREDICT_CHUNK, PROXY_FEATURES, SCALINGS, SCENE_FORMAT, SCENE_FORMAT_ENTROPY,
-    SCENE_FORMAT_LEVELS, SCENE_KIND, QuantizedAnchors, encode_positions, level_table,
+    FLOAT_BITS, MAX_ANCHORS, MAX_LEVEL_CELLS, OFFSETS, PREDICT_CHUNK, PROXY_FEATURES, SCALINGS, SCENE_FORMAT,
+    SCENE_FORMAT_ENTROPY, SCENE_FORMAT_LEVELS, SCENE_KIND, QuantizedAnchors, encode_positions, level_table,
     guarded, pack_weights, quantize_anchors, read_scene_container, scene_extras, scene_metadata, scene_sections,
     stored_anchors, weights_from_sections, zero_dead_offsets,
 )
@@ -145,8 +145,8 @@ class EncodeConfig:
         if self.quant_cells and not (self.lambda_rate > 0 and self.distill is not False):
             raise ProxycodecError("quant cells are learned by distillation's rate term: give lambda_rate > 0 "
                                   "(and do not turn distillation off)")
-        if not 0 <= self.quant_cells <= 32:
-            raise ProxycodecError(f"quant cells must be in [0, 32], got {self.quant_cells}")
+        if not 0 <= self.quant_cells <= MAX_LEVEL_CELLS:
+            raise ProxycodecError(f"quant cells must be in [0, {MAX_LEVEL_CELLS}], got {self.quant_cells}")
         if self.images is not None and self.distill is False:
             raise ProxycodecError("images are for distillation: drop --no-distill")
         return self
@@ -350,7 +350,8 @@ def _learned_steps(scene_meta: dict, cfg: EncodeConfig, Fd: int, K: int) -> dict
                                                                   & np.isfinite(origin)):
             raise ProxycodecError(f"the scene's learned quantisation grid for {k} is malformed")
         if "levels" in g:
-            level_table(g["levels"], lambda m, k=k: ProxycodecError(f"the scene's learned quantisation grid for {k}: {m}"))
+            level_table(g["levels"],
+                        lambda m, k=k: ProxycodecError(f"the scene's learned quantisation grid for {k}: {m}"))
         if getattr(cfg, knob[k]) != FLOAT_BITS:
             out[k] = (step, origin) + ((g["levels"],) if "levels" in g else ())
     return out
@@ -540,8 +541,7 @@ def _drop_dead_offsets(decoded: SceneModel, sections: dict, meta: dict, q: Quant
     -> the decoded model of the result."""
     dead = ~_live_slots(decoded, threshold)  # [M, K] in stored (Morton) order
     if dead.any():
-        qp = q.quant["offsets"]
-        sections[OFFSETS] = zero_dead_offsets(sections[OFFSETS], qp, dead, q.levels.get("offsets"))
+        sections[OFFSETS] = zero_dead_offsets(sections[OFFSETS], q.quant["offsets"], dead, q.levels.get("offsets"))
         decoded = _model_from_sections(meta, sections, ProxycodecError)
     meta["offsets_dead"] = {"slots": int(dead.sum()), "of": int(dead.size), "threshold": threshold}
     say(f"{int(dead.sum())} of {dead.size} neural Gaussians are never drawn: their offsets are stored as 0")

@@ -170,7 +170,7 @@ def read_levels(quant: dict, sections: dict[str, np.ndarray], positions: np.ndar
         raise err(f"missing or malformed section {LEVELS!r}")
     if sec.size and np.abs(sec.astype(np.int64)).max() > LEVEL_MAX:
         raise err(f"section {LEVELS!r}: a level outside [-{LEVEL_MAX}, {LEVEL_MAX}]")
-    out, used = {}, 0
+    out, used, cells = {}, 0, {}
     for k in names:
         info = quant[k]["levels"]
         G, n = (info.get("cells"), info.get("entries")) if isinstance(info, dict) else (None, None)
@@ -178,8 +178,9 @@ def read_levels(quant: dict, sections: dict[str, np.ndarray], positions: np.ndar
             raise err(f"bad quantisation level cells {G!r}")
         if not (isinstance(n, int) and not isinstance(n, bool) and 0 <= n <= sec.size - used):
             raise err(f"bad quantisation level entries {n!r} for {k}")
-        leaf = ~mask
-        out[k] = levels_from_entries(sec[used:used + n].astype(np.int64), position_cells(positions, voxel, G), leaf,
+        if G not in cells:  # the attributes usually share one grid
+            cells[G] = position_cells(positions, voxel, G)
+        out[k] = levels_from_entries(sec[used:used + n].astype(np.int64), cells[G], ~mask,
                                      stored_rows(k, mask, predict_offsets), err)
         used += n
     if used != sec.size:
@@ -675,7 +676,8 @@ def stored_anchors(meta: dict, sections: dict[str, np.ndarray], err: ErrorFactor
         raise err(f"proxy mask marks {int(mask.sum())} proxies, metadata says {P}")
     q = meta["quant"]
     fmt = meta.get("scene_format")
-    if (fmt == SCENE_FORMAT_ENTROPY or (fmt == SCENE_FORMAT_LEVELS and "entropy" in meta)) != ("entropy" in meta):
+    if ("entropy" in meta and fmt not in (SCENE_FORMAT_ENTROPY, SCENE_FORMAT_LEVELS)) or \
+            (fmt == SCENE_FORMAT_ENTROPY and "entropy" not in meta):
         raise err("entropy-coded sections need scene format 4 or 5 and its 'entropy' metadata")
     if (fmt == SCENE_FORMAT_LEVELS) != any(isinstance(v, dict) and "levels" in v for v in q.values()):
         raise err("per-cell quantisation levels need scene format 5, and format 5 needs them")
