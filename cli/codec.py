@@ -72,6 +72,9 @@ def _stderr(msg: str) -> None:
                help="Seconds of distillation (with --distill-iters, whichever ends first).")
 @encode_option("--distill-views", show_default=True, type=int,
                help="Teacher views at least (automatic views around the scene are added up to this many).")
+@encode_option("--distill-full-share", show_default=True, type=click.FloatRange(0.0, 1.0),
+               help="Share of distillation iterations at 100% (as fit --xi-full-share; anchor scenes: a 3DGS "
+                    "PLY's conversion keeps its own, 0).")
 @encode_option("--images", type=click.Path(exists=True, file_okay=False),
                help="Distil against this dataset's photos (Blender or COLMAP folder) instead of the source's renders.")
 @click.option("--keep-anchor-scene", type=click.Path(dir_okay=False), default=None,
@@ -83,7 +86,8 @@ def encode(scene, out, weights, proxy_ratio, proxy_selection, cell_size, feature
            weights_dtype, predict_offsets, max_cameras, drop_dead_offsets, predictor_context, predictor_iters, leaf_sample,
            zstd_level,
            entropy, entropy_iters, lambda_rate, quant_cells, learned_steps, seed,
-           refit_predictor, distill, distill_iters, distill_time_budget, distill_views, images, keep_anchor_scene,
+           refit_predictor, distill, distill_iters, distill_time_budget, distill_views, distill_full_share,
+           images, keep_anchor_scene,
            voxel_size, views, view_size, background, max_width, as_json) -> None:
     """Compress an anchor scene (Scaffold-GS PLY + weights sidecar, or a trained Scaffold-GS output: its folder or
     its point_cloud.ply with the MLP files beside it) to a proxy-anchor container.
@@ -121,7 +125,8 @@ def encode(scene, out, weights, proxy_ratio, proxy_selection, cell_size, feature
         source = (scene, weights) if weights else scene
         r = codec.encode(source, out, **knobs, use_fitted=not refit_predictor, drop_dead_offsets=drop_dead_offsets,
                          distill=distill, distill_iters=distill_iters, distill_time_budget=distill_time_budget,
-                         distill_views=distill_views, images=images, progress=_stderr)
+                         distill_views=distill_views, distill_full_share=distill_full_share, images=images,
+                         progress=_stderr)
     if as_json:
         click.echo(json.dumps(r.to_json(), indent=2))
     else:

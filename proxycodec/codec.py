@@ -104,6 +104,9 @@ class EncodeConfig:
     distill_iters: int | None = 4000
     distill_time_budget: float | None = None  # seconds; with distill_iters, whichever ends first
     distill_views: int = 32  # teacher views at least: automatic views are added around the scene up to this many
+    # share of the distillation's iterations at 100% (fit's xi_full_share, whose default fitted the sources it
+    # distils): the decoded scene's gap to its source sits at high resolution (SPEC.md section 4)
+    distill_full_share: float = 0.25
     distill_lr_scale: float = 1.0  # fit's learning rates of the anchors and the decoder times this (not the predictor's)
     distill_lr_warmup: float = 0.05  # every learning rate ramps up over this fraction of the distillation
     images: str | None = None  # a dataset folder: distil against its photos instead of the source's renders
@@ -142,6 +145,8 @@ class EncodeConfig:
             raise ProxycodecError(f"distill learning-rate scale must be >= 0, got {self.distill_lr_scale}")
         if self.distill_views < 1:
             raise ProxycodecError(f"distill views must be >= 1, got {self.distill_views}")
+        if not (0.0 <= self.distill_full_share <= 1.0):
+            raise ProxycodecError(f"distill full share must be in [0, 1], got {self.distill_full_share}")
         if self.quant_cells and not (self.lambda_rate > 0 and self.distill is not False):
             raise ProxycodecError("quant cells are learned by distillation's rate term: give lambda_rate > 0 "
                                   "(and do not turn distillation off)")
@@ -301,7 +306,8 @@ def encode(
         encoder={"zstd_level": cfg.zstd_level, "proxycodec": _version()},
         **({} if distilled is None else {"distill": {
             "iterations": distilled.iterations, "images": cfg.images,
-            "teacher_views": len(distilled.views.train_indices), "loss": "fit's rendering loss, random xi"}}))
+            "teacher_views": len(distilled.views.train_indices),
+            "full_share": cfg.distill_full_share, "loss": "fit's rendering loss, random xi"}}))
     # 6. the decoded model, through the decoder's own path (so report.model == decode(out), bit for bit)
     err = ProxycodecError
     decoded = _model_from_sections(meta, sections, err)
@@ -431,7 +437,7 @@ def _distill(model: SceneModel, fitted: tuple, cfg: EncodeConfig, say: Progress)
         proxy_cell=float(cfg.cell_size) if cfg.cell_size else default_cell_size(pos, voxel, cfg.cell_target),
         predictor_hidden=cfg.predictor_hidden, predictor_blocks=cfg.predictor_blocks,
         predictor_context=cfg.predictor_context, predict_offsets=bool(cfg.predict_offsets),
-        lr_warmup=cfg.distill_lr_warmup, xi_full_share=0.0,  # as distillation was measured (SPEC.md section 4)
+        lr_warmup=cfg.distill_lr_warmup, xi_full_share=cfg.distill_full_share,
         lambda_rate=cfg.lambda_rate, quant_cells=cfg.quant_cells)
     views = None
     if cfg.images is not None:

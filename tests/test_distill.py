@@ -140,7 +140,7 @@ def test_distillation_is_deterministic(pair, tmp_path):
     defaults = {**QUICK, "proxy_selection": codec.EncodeConfig.proxy_selection,
                 "predictor_context": codec.EncodeConfig.predictor_context}
     one = codec.encode(m, tmp_path / "one.pxc", **defaults)
-    two = codec.encode(m, tmp_path / "two.pxc", **defaults)
+    codec.encode(m, tmp_path / "two.pxc", **defaults)
     assert one.meta["predictor"]["context"] == 4
     assert (tmp_path / "one.pxc").read_bytes() == (tmp_path / "two.pxc").read_bytes()
 
@@ -185,10 +185,30 @@ def test_bad_distillation_settings_are_user_errors(tmp_path):
     m = _model(60)
     for bad in ({"distill_iters": 0}, {"distill_iters": None, "distill_time_budget": None},
                 {"distill_views": 0}, {"distill": False, "images": str(tmp_path)}, {"quant_cells": 4},
-                {"quant_cells": 4, "lambda_rate": 1e-3, "distill": False}, {"quant_cells": 33, "lambda_rate": 1e-3}):
+                {"quant_cells": 4, "lambda_rate": 1e-3, "distill": False}, {"quant_cells": 33, "lambda_rate": 1e-3},
+                {"distill_full_share": 1.5}, {"distill_full_share": -0.1}):
         with pytest.raises(ProxycodecError):
             codec.encode(m, tmp_path / "x.pxc", **{**QUICK, **bad})
     assert not (tmp_path / "x.pxc").exists()
+
+
+def test_the_distillation_trains_with_fits_share_at_full_resolution(monkeypatch, tmp_path):
+    """Distillation draws fit's share of its iterations at 100% (the sources it distils were fitted so; the gap to
+    the source sits at high resolution, SPEC section 4), and ``distill_full_share`` sets it."""
+    import proxycodec.distill as distill_module
+    from proxycodec.train import FitConfig
+
+    seen = []
+
+    def spy(source, config, **kw):
+        seen.append(config.xi_full_share)
+        raise RuntimeError("stop here")
+
+    monkeypatch.setattr(distill_module, "distill", spy)
+    for kw in ({}, {"distill_full_share": 0.0}, {"distill_full_share": 0.6}):
+        with pytest.raises(RuntimeError, match="stop here"):
+            codec.encode(_model(60), tmp_path / "x.pxc", **{**QUICK, **kw})
+    assert seen == [FitConfig().xi_full_share, 0.0, 0.6] and seen[0] > 0
 
 
 # ------------------------------------------------------------------------------------------------ fitted scenes
@@ -226,10 +246,12 @@ def test_cli_encode_distils_and_reports(trained, tmp_path):
     m = trained
     ply, _ = m.save(tmp_path / "s.ply")
     r = CliRunner().invoke(cli, ["encode", str(ply), "-o", str(tmp_path / "s.pxc"), "--distill-iters", "3",
-                                 "--distill-views", "12", "--predictor-iters", "5", "--json"])
+                                 "--distill-views", "12", "--predictor-iters", "5",
+                                 "--distill-full-share", "0.5", "--json"])
     assert r.exit_code == 0, r.output
     out = json.loads(r.stdout)
     assert out["distill"]["iterations"] == 3 and len(out["distill"]["held_out"]["per_resolution"]) == 10
+    assert out["distill"]["full_share"] == 0.5
     assert "decoded vs source renders on held-out views" in r.stderr
     s = CliRunner().invoke(cli, ["stats", str(tmp_path / "s.pxc")])
     assert s.exit_code == 0 and "distilled 3 iterations against the source's renders" in s.output, s.output
