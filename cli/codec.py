@@ -75,6 +75,10 @@ def _stderr(msg: str) -> None:
 @encode_option("--distill-full-share", show_default=True, type=click.FloatRange(0.0, 1.0),
                help="Share of distillation iterations at 100% (as fit --xi-full-share; anchor scenes: a 3DGS "
                     "PLY's conversion keeps its own, 0).")
+@encode_option("--distill-targets", show_default=True, type=click.Choice(["auto", "whole", "full"]),
+               help="The teacher's target at a training resolution: its render at the largest whole multiple of the "
+                    "size within 100%, box-filtered by it (whole), or its 100% render box-filtered down (full); "
+                    "auto: whole for a scene fitted at random resolutions, else full.")
 @encode_option("--images", type=click.Path(exists=True, file_okay=False),
                help="Distil against this dataset's photos (Blender or COLMAP folder) instead of the source's renders.")
 @click.option("--keep-anchor-scene", type=click.Path(dir_okay=False), default=None,
@@ -87,7 +91,7 @@ def encode(scene, out, weights, proxy_ratio, proxy_selection, cell_size, feature
            zstd_level,
            entropy, entropy_iters, lambda_rate, quant_cells, learned_steps, seed,
            refit_predictor, distill, distill_iters, distill_time_budget, distill_views, distill_full_share,
-           images, keep_anchor_scene,
+           distill_targets, images, keep_anchor_scene,
            voxel_size, views, view_size, background, max_width, as_json) -> None:
     """Compress an anchor scene (Scaffold-GS PLY + weights sidecar, or a trained Scaffold-GS output: its folder or
     its point_cloud.ply with the MLP files beside it) to a proxy-anchor container.
@@ -125,7 +129,8 @@ def encode(scene, out, weights, proxy_ratio, proxy_selection, cell_size, feature
         source = (scene, weights) if weights else scene
         r = codec.encode(source, out, **knobs, use_fitted=not refit_predictor, drop_dead_offsets=drop_dead_offsets,
                          distill=distill, distill_iters=distill_iters, distill_time_budget=distill_time_budget,
-                         distill_views=distill_views, distill_full_share=distill_full_share, images=images,
+                         distill_views=distill_views, distill_full_share=distill_full_share,
+                         distill_targets=distill_targets, images=images,
                          progress=_stderr)
     if as_json:
         click.echo(json.dumps(r.to_json(), indent=2))
@@ -294,7 +299,8 @@ def stats(file, as_json) -> None:
         d = s.get("distill") or {}
         rep = d.get("held_out") if isinstance(d, dict) else None
         if isinstance(rep, dict) and isinstance(rep.get("per_resolution"), list):
-            src = f"the photos of {d['images']}" if d.get("images") else "the source's renders"
+            src = f"the photos of {d['images']}" if d.get("images") else "the source's renders" + (
+                f" ({d['targets']} targets)" if d.get("targets") else "")
             click.echo(f"  distilled {d.get('iterations')} iterations against {src}; decoded vs source renders on "
                        f"{len(rep.get('views', []))} held-out views: " + report_line(rep))
     click.echo(f"  {'section':34s} {'dtype':>6s} {'shape':>14s} {'stored':>10s} {'raw':>10s}")

@@ -98,8 +98,14 @@ class Camera:
         Intrinsics scale by the realised size ratio per axis, so the image covers exactly the same field of view.
         """
         xi = check_xi(xi)
-        w = max(1, int(round(xi * self.width)))
-        h = max(1, int(round(xi * self.height)))
+        return self.sized(max(1, int(round(xi * self.width))), max(1, int(round(xi * self.height))))
+
+    def sized(self, width: int, height: int) -> "Camera":
+        """The same camera rendering exactly ``width x height`` pixels (intrinsics scaled per axis, so the image
+        covers the same field of view): ``scaled`` with the size given instead of the ratio."""
+        w, h = int(width), int(height)
+        if w < 1 or h < 1:
+            raise ProxycodecError(f"image size must be at least 1 x 1, got {w} x {h}")
         sx, sy = w / self.width, h / self.height
         return replace(self, fx=self.fx * sx, fy=self.fy * sy, cx=self.cx * sx, cy=self.cy * sy, width=w, height=h)
 

@@ -109,6 +109,11 @@ class EncodeConfig:
     distill_full_share: float = 0.25
     distill_lr_scale: float = 1.0  # fit's learning rates of the anchors and the decoder times this (not the predictor's)
     distill_lr_warmup: float = 0.05  # every learning rate ramps up over this fraction of the distillation
+    # [D] how the teacher's targets are made (``distill.TARGET_RULES``): "whole" renders the teacher at the largest
+    # whole multiple of the target's size within 100% and box-filters by that factor, "full" box-filters its 100%
+    # render by any ratio (fractional ratios blur: lego's teacher at 90% was 1.2 dB further from the photos than its
+    # own 90% render); "auto": "whole" for a teacher trained at random resolutions, else "full" (SPEC.md section 4)
+    distill_targets: str = "auto"
     images: str | None = None  # a dataset folder: distil against its photos instead of the source's renders
 
     def __post_init__(self) -> None:
@@ -154,6 +159,9 @@ class EncodeConfig:
             raise ProxycodecError(f"quant cells must be in [0, {MAX_LEVEL_CELLS}], got {self.quant_cells}")
         if self.images is not None and self.distill is False:
             raise ProxycodecError("images are for distillation: drop --no-distill")
+        from .distill import check_target_rule
+
+        check_target_rule(self.distill_targets)
         return self
 
     def distilling(self, has_fitted_predictor: bool) -> bool:
@@ -307,7 +315,8 @@ def encode(
         **({} if distilled is None else {"distill": {
             "iterations": distilled.iterations, "images": cfg.images,
             "teacher_views": len(distilled.views.train_indices),
-            "full_share": cfg.distill_full_share, "loss": "fit's rendering loss, random xi"}}))
+            "full_share": cfg.distill_full_share, "targets": distilled.views.rule if cfg.images is None else None,
+            "loss": "fit's rendering loss, random xi"}}))
     # 6. the decoded model, through the decoder's own path (so report.model == decode(out), bit for bit)
     err = ProxycodecError
     decoded = _model_from_sections(meta, sections, err)
@@ -448,17 +457,18 @@ def _distill(model: SceneModel, fitted: tuple, cfg: EncodeConfig, say: Progress)
         say(f"distilling against the photos of {cfg.images}")
     start = fitted if fitted[0] is not None else None
     return distill(model, fcfg, views=views, start_proxies=start, log=say, min_views=cfg.distill_views,
-                   lr_scale=cfg.distill_lr_scale)
+                   lr_scale=cfg.distill_lr_scale, targets=cfg.distill_targets)
 
 
 def _held_out(decoded: SceneModel, source: SceneModel, distilled, cfg: EncodeConfig, say: Progress) -> dict:
     """The decoded scene against the source's anti-aliased renders on held-out views, 10%..100%."""
-    from .distill import TeacherViews, held_out_report, report_line
+    from .distill import TeacherViews, held_out_report, report_line, target_rule_for
 
     views = distilled.views
     if not isinstance(views, TeacherViews):  # distilled against photos: the report still compares with the source
         cams = [views.cameras[i] for i in views.test_indices] or list(views.cameras)
-        views = TeacherViews(source, cams, held_out=list(range(len(cams))))
+        views = TeacherViews(source, cams, held_out=list(range(len(cams))),
+                             targets=target_rule_for(source, cfg.distill_targets))
     rep = held_out_report(decoded, views)
     say("decoded vs source renders on held-out views: " + report_line(rep))
     return rep

@@ -1,9 +1,12 @@
 """The image-free encoder: fine-tune the proxy scene against its source scene's own renders.
 
 The teacher is the source scene itself (a ``fit`` output, an imported scene, a converted 3DGS PLY). It is rendered
-from its cameras (the stored ones; automatic views around the anchors when there are few or none) at 100% and
-box-filtered down to each training resolution, exactly as ``fit`` anti-aliases its photos: ``TeacherViews`` is a
-dataset whose images are the teacher's renders. The student is the proxy scene: ``fit``'s own trainer
+from its cameras (the stored ones; automatic views around the anchors when there are few or none) and anti-aliased
+to each training resolution: ``TeacherViews`` is a dataset whose images are the teacher's renders. A teacher trained
+at random resolutions renders at the largest whole multiple of the target's size within 100% and is box-filtered by
+that whole factor (at 50%..100%: its own render at that size); any other teacher renders at 100% and is box-filtered
+down by any ratio, as ``fit`` anti-aliases its photos (``TARGET_RULES``; SPEC.md section 4 has the measurement). The
+student is the proxy scene: ``fit``'s own trainer
 (``train.Trainer``) starts from the source's anchors and decoder, enters stage 2 at once (proxies selected, the
 residual predictor warmed up on ``L_recon``, or the scene's fitted predictor and split), and trains the predictor,
 the proxies' features, offsets, scalings and the decoder MLPs (FiLM and gate included) with ``fit``'s rendering loss
@@ -21,13 +24,13 @@ import torch
 
 from .camera import Camera
 from .errors import ProxycodecError
-from .loop import ProgressFn, fmt_time, run_until_done
+from .loop import ProgressFn, TargetImages, fmt_time, run_until_done
 from .metrics import psnr, ssim
 from .model import SceneModel
 from .train import FitConfig, Trainer
 
-__all__ = ["REPORT_RESOLUTIONS", "DistillResult", "TeacherViews", "distill", "held_out_report", "report_line",
-           "teacher_cameras"]
+__all__ = ["REPORT_RESOLUTIONS", "TARGET_RULES", "DistillResult", "TeacherViews", "distill", "held_out_report",
+           "report_line", "resolution_aware", "target_rule_for", "teacher_cameras"]
 
 #: the resolutions the held-out report measures (10%..100%, as the paper's tables)
 REPORT_RESOLUTIONS = tuple(round(0.1 * k, 1) for k in range(1, 11))
@@ -74,19 +77,51 @@ def teacher_cameras(model: SceneModel, min_views: int, width: int = 256, height:
     return cams + auto
 
 
+#: How a teacher's target at a training resolution is made (``TeacherViews``; ``encode --distill-targets``):
+#: "whole": rendered at the largest whole multiple k of the target's size that fits in 100% and box-filtered by k
+#: (k = 1: the teacher's own render at that size); "full": the 100% render box-filtered down (any ratio).
+TARGET_RULES = ("whole", "full")
+
+
+def check_target_rule(rule: str) -> None:
+    if rule not in TARGET_RULES + ("auto",):
+        raise ProxycodecError(f"unknown distillation target rule {rule!r}; choose from auto, {', '.join(TARGET_RULES)}")
+
+
+def resolution_aware(model) -> bool:
+    """Whether ``model`` was trained to render every resolution itself: a ``fit`` output (or a conversion) trained
+    at random resolutions. An imported Scaffold-GS output or a 3DGS PLY was trained at one size only: below it its
+    own render aliases, so its targets are its 100% render box-filtered down."""
+    cfg = ((getattr(model, "meta", None) or {}).get("fit") or {}).get("config") or {}
+    return bool(cfg) and not cfg.get("fixed_res", False) and cfg.get("xi_min", 0.1) < cfg.get("xi_max", 1.0)
+
+
+def target_rule_for(model, rule: str = "auto") -> str:
+    """``rule`` with "auto" resolved: "whole" for a resolution-aware teacher (``resolution_aware``), else "full"."""
+    check_target_rule(rule)
+    if rule != "auto":
+        return rule
+    return "whole" if resolution_aware(model) else "full"
+
+
 class TeacherViews:
-    """A dataset (the ``PosedImages`` interface the trainer reads) whose images are a teacher scene's renders at 100%,
-    area-resized to ``camera.scaled(xi)`` by the trainer's targets like any photo. ``held_out`` cameras (default:
-    the test cameras a ``fit`` recorded, ``camera_split``, when the teacher has them and they are its first cameras;
-    else every ``holdout_every``-th camera) are never trained on: they are the report's."""
+    """A dataset (the ``PosedImages`` interface the trainer reads) whose images are a teacher scene's renders,
+    anti-aliased to ``camera.scaled(xi)`` by ``targets`` (``TARGET_RULES``): the 100% render area-averaged down like
+    any photo ("full"), or the render at the largest whole multiple of the size within 100% box-filtered by that
+    whole factor ("whole"). ``held_out`` cameras (default: the test cameras a ``fit`` recorded, ``camera_split``,
+    when the teacher has them and they are its first cameras; else every ``holdout_every``-th camera) are never
+    trained on: they are the report's."""
 
     def __init__(self, teacher: SceneModel, cameras: list[Camera], holdout_every: int = 8, backend: str = "auto",
-                 held_out: list[int] | None = None):
+                 held_out: list[int] | None = None, targets: str = "full"):
         if not cameras:
             raise ProxycodecError("the scene has no cameras to distil from")
+        if targets not in TARGET_RULES:
+            raise ProxycodecError(f"unknown distillation target rule {targets!r}; choose from {', '.join(TARGET_RULES)}")
         self.teacher = teacher
         self.cameras = list(cameras)
         self.backend = backend
+        self.rule = targets
         n = len(self.cameras)
         split = (teacher.meta.get("fit") or {}).get("camera_split") or {}
         fitted_test = [int(i) for i in split.get("test", []) if isinstance(i, int) and 0 <= i < n]
@@ -108,20 +143,57 @@ class TeacherViews:
         cam = self.cameras[i].scaled(xi)
         return cam.width, cam.height
 
+    def source_size(self, i: int, width: int, height: int) -> tuple[int, int]:
+        """The size the teacher renders at for a ``width x height`` target: its 100% size ("full"), or the largest
+        whole multiple k of the target's size within it ("whole"; k = 1: the target's own size)."""
+        cam = self.cameras[i]
+        if self.rule == "full":
+            return cam.width, cam.height
+        k = max(1, min(cam.width // width, cam.height // height))
+        return k * width, k * height
+
+    def render(self, i: int, size: tuple[int, int]) -> np.ndarray:
+        """The teacher's render of view ``i`` at ``size`` (float32 [h, w, 3], clamped to [0, 1] as a photo, and every
+        render we report, is: a 3DGS teacher's SH colours can exceed 1)."""
+        cam = self.cameras[i]
+        img = self.teacher.render(cam, size[0] / cam.width, backend=self.backend, size=size).image
+        return img.clamp(0.0, 1.0).numpy().astype(np.float32)
+
     def load_image(self, i: int, xi: float = 1.0) -> torch.Tensor:
-        """The teacher's render of view ``i`` at 100%, area-averaged to ``xi`` (float32 [h, w, 3])."""
+        """The teacher's target for view ``i`` at ``xi`` (float32 [h, w, 3]): its render at ``source_size``,
+        area-averaged to the size of ``camera.scaled(xi)``."""
         from .formats.images import resize_image
 
-        full = self._full.get(i)
-        if full is None:
-            # clamped to [0, 1] as a photo (and every render we report) is: a 3DGS teacher's SH colours can exceed 1
-            full = self.teacher.render(self.cameras[i], 1.0, backend=self.backend).image.clamp(0.0, 1.0).numpy()
-            full = full.astype(np.float32)
-            if i in self.test_indices:  # the report reads them at every resolution; training views are cached by
-                self._full[i] = full     # the trainer's targets (loop.TargetImages), not twice
-
         w, h = self.image_size(i, xi)
-        return torch.from_numpy(resize_image(full, w, h) if (w, h) != full.shape[1::-1] else full.copy())
+        size = self.source_size(i, w, h)
+        cam = self.cameras[i]
+        if size != (cam.width, cam.height):
+            src = self.render(i, size)
+        else:
+            src = self._full.get(i)
+            if src is None:
+                src = self.render(i, size)
+                if i in self.test_indices:  # the report reads them at every resolution; training views are cached
+                    self._full[i] = src      # by the trainer's targets (``targets``), not twice
+        return torch.from_numpy(resize_image(src, w, h) if (w, h) != src.shape[1::-1] else src.copy())
+
+    def targets(self, max_bytes: int):
+        """The trainer's targets (``get(view, xi)``): the 100% renders kept in ``loop.TargetImages``' bounded cache
+        and area-averaged from there; sizes the rule renders at another size are rendered on demand."""
+        return _TeacherTargets(self, TargetImages(self, max_bytes))
+
+
+class _TeacherTargets:
+    def __init__(self, views: TeacherViews, full: TargetImages):
+        self.views, self.full = views, full
+
+    def get(self, i: int, xi: float) -> torch.Tensor:
+        v = self.views
+        w, h = v.image_size(i, xi)
+        cam = v.cameras[i]
+        if v.source_size(i, w, h) == (cam.width, cam.height):
+            return self.full.get(i, xi)
+        return v.load_image(i, xi)
 
 
 # ================================================================================================ the run
@@ -137,13 +209,15 @@ class DistillResult:
 
 
 def distill(source: SceneModel, config: FitConfig, *, views: TeacherViews | None = None, start_proxies=None,
-            log: ProgressFn | None = None, min_views: int = 32, lr_scale: float = 1.0) -> DistillResult:
+            log: ProgressFn | None = None, min_views: int = 32, lr_scale: float = 1.0,
+            targets: str = "auto") -> DistillResult:
     """Fine-tune the proxy scene of ``source`` against ``views`` (default: ``TeacherViews`` of ``source`` itself).
 
     ``config``: ``fit``'s configuration; stage 2 starts at once and the anchor set is frozen (``stage2_start`` and
     ``update_until`` are set to 0 here). ``start_proxies``: (predictor, proxy mask) to start from (a fitted scene's).
     ``lr_scale`` multiplies the learning rates of the anchors and the decoder (not the predictor's): a converged
-    scene is fine-tuned, and Adam's first steps move every parameter by about its learning rate.
+    scene is fine-tuned, and Adam's first steps move every parameter by about its learning rate. ``targets``: how
+    the default views make their targets (``TARGET_RULES``, or "auto": ``target_rule_for``).
     """
     log = log or (lambda s: None)
     cfg = replace(config, proxies=True, stage2_start=0.0, update_until=0.0, checkpoint_every=0.0)
@@ -152,7 +226,8 @@ def distill(source: SceneModel, config: FitConfig, *, views: TeacherViews | None
         pc = start_proxies[0].config
         cfg = replace(cfg, predictor="residual", predictor_hidden=pc.hidden, predictor_blocks=pc.n_blocks,
                       predictor_context=pc.context, predict_offsets=pc.predict_offsets)
-    views = views or TeacherViews(source, teacher_cameras(source, min_views), backend=cfg.backend)
+    views = views or TeacherViews(source, teacher_cameras(source, min_views), backend=cfg.backend,
+                                  targets=target_rule_for(source, targets))
     t0 = time.perf_counter()
     tr = Trainer(views, cfg, "distill", log, start=source, start_proxies=start_proxies)
     log(f"distill: {len(views.train_indices)} teacher views ({len(views.test_indices)} held out), "
@@ -170,7 +245,7 @@ def distill(source: SceneModel, config: FitConfig, *, views: TeacherViews | None
 @torch.no_grad()
 def held_out_report(model: SceneModel, views: TeacherViews, resolutions=REPORT_RESOLUTIONS, *, max_views: int = 8,
                     backend: str = "auto") -> dict:
-    """PSNR / SSIM of ``model`` against the teacher's anti-aliased renders (its 100% render area-averaged: the
+    """PSNR / SSIM of ``model`` against the teacher's anti-aliased renders (``views.load_image``: the
     distillation's targets) on (up to ``max_views``) held-out views at each resolution, and PSNR against the teacher
     rendered at the same resolution (``psnr_same_xi``: the scene's own render at that size, which the teacher itself
     matches exactly); means per resolution and over all. Below 100% the two differ: the source matches its own

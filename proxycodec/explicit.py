@@ -490,8 +490,9 @@ class ExplicitModel:
     def scene(self) -> _ExplicitInfo:
         return _ExplicitInfo(self.ply.n_gaussians, self.ply.means)
 
-    def render(self, camera, xi: float = 1.0, *, backend: str = "auto") -> RenderResult:
-        cam = camera.scaled(xi)
+    def render(self, camera, xi: float = 1.0, *, backend: str = "auto",
+               size: tuple[int, int] | None = None) -> RenderResult:
+        cam = camera.scaled(xi) if size is None else camera.sized(*size)
         with torch.no_grad():
             colors = sh_colors(self._sh, self._means, cam.center, self.ply.sh_degree)
             return render_gaussians(self._means, self._quats, self._scales, self._op, colors, cam,

@@ -64,10 +64,12 @@ def render_scene(
     features: torch.Tensor | None = None,
     offsets: torch.Tensor | None = None,
     gate: GateConfig | None = None,
+    size: tuple[int, int] | None = None,
 ) -> SceneRender:
-    """Render ``scene`` from ``camera`` (given at its 100% reference size) at resolution ratio ``xi``."""
+    """Render ``scene`` from ``camera`` (given at its 100% reference size) at resolution ratio ``xi``: at
+    ``camera.scaled(xi)``'s size, or at ``size`` (width, height) where given (the embedding still sees ``xi``)."""
     xi = check_xi(xi)
-    cam = camera.scaled(xi)
+    cam = camera.scaled(xi) if size is None else camera.sized(*size)
     g, vis = decode_view(scene, decoder, cam, xi, features, offsets)
     bg = torch.as_tensor(background, dtype=scene.positions.dtype, device=scene.positions.device)
     proj = project(g.means, g.quats, g.scales, g.opacities, g.colors, cam,
@@ -86,9 +88,11 @@ class SceneModel:
     background: tuple[float, float, float] = (1.0, 1.0, 1.0)
     meta: dict = field(default_factory=dict)  # the weights sidecar's metadata when loaded from files
 
-    def render(self, camera: Camera, xi: float = 1.0, *, backend: str = "auto") -> SceneRender:
+    def render(self, camera: Camera, xi: float = 1.0, *, backend: str = "auto",
+               size: tuple[int, int] | None = None) -> SceneRender:
         with torch.no_grad():
-            return render_scene(self.scene, self.decoder, camera, xi, background=self.background, backend=backend)
+            return render_scene(self.scene, self.decoder, camera, xi, background=self.background, backend=backend,
+                                size=size)
 
     # ------------------------------------------------------------------ persistence
     def save(self, ply_path: str | os.PathLike, extra_meta: dict | None = None,

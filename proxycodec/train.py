@@ -359,7 +359,9 @@ class Trainer(TrainingRun):
         if not data.train_indices:
             raise ProxycodecError("the dataset has no training images")
         self.rng = np.random.default_rng(config.seed)
-        self.images = TargetImages(data, config.image_cache_mb << 20)
+        # a dataset that makes its own targets (a teacher scene's renders: ``distill.TeacherViews``) hands them over
+        make_targets = getattr(data, "targets", None)
+        self.images = (make_targets or (lambda n: TargetImages(data, n)))(config.image_cache_mb << 20)
         torch.manual_seed(config.seed)
         if start is None:
             anchors, voxel, center, radius = initial_anchors(data, config, self.rng)

@@ -13,7 +13,9 @@ from test_codec import FAST, tiny_model
 
 from proxycodec import codec
 from proxycodec.camera import orbit_cameras
-from proxycodec.distill import REPORT_RESOLUTIONS, TeacherViews, held_out_report, teacher_cameras
+from proxycodec.distill import REPORT_RESOLUTIONS, TeacherViews, held_out_report, resolution_aware, teacher_cameras
+from proxycodec.errors import ProxycodecError
+from proxycodec.formats.images import resize_image
 from proxycodec.model import SceneModel
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -61,6 +63,58 @@ def test_teacher_targets_are_the_100_percent_render_area_averaged():
     half = v.load_image(1, 0.5).numpy()
     assert half.shape == (12, 16, 3)
     np.testing.assert_allclose(half, full.reshape(12, 2, 16, 2, 3).mean((1, 3)), atol=1e-6)
+    # any ratio: the 100% render area-averaged (24 x 18 from 32 x 24), not the teacher's own 75% render
+    three_q = v.load_image(1, 0.75).numpy()
+    np.testing.assert_allclose(three_q, resize_image(full, 24, 18), atol=1e-6)
+    assert not np.allclose(three_q, m.render(m.cameras[1], 0.75).image.numpy(), atol=1e-3)
+
+
+def test_whole_targets_render_at_the_largest_whole_multiple_of_the_size_and_box_filter_by_it(trained):
+    """The "whole" rule: the teacher renders at k x the target's size, k the largest whole number that fits in
+    100%, with the embedding at that ratio, and the target is its exact k x k block average (k = 1: the teacher's own
+    render at the target's size). The trainer's targets are the same images (the 100% renders from its cache)."""
+    m = trained
+    v = TeacherViews(m, list(m.cameras), targets="whole")
+    cam = m.cameras[1]
+    assert (cam.width, cam.height) == (32, 32)
+    full = m.render(cam, 1.0).image.numpy()
+    # 50%: 16 x 16, k = 2, the 100% render's 2 x 2 means (as the "full" rule gives)
+    np.testing.assert_allclose(v.load_image(1, 0.5).numpy(), full.reshape(16, 2, 16, 2, 3).mean((1, 3)), atol=1e-6)
+    # 75%: 24 x 24, k = 1: the teacher at 75% itself, which the 100% render area-averaged is not
+    assert v.source_size(1, 24, 24) == (24, 24)
+    own = m.render(cam, 0.75).image.numpy()
+    assert np.array_equal(v.load_image(1, 0.75).numpy(), own)
+    assert not np.allclose(resize_image(full, 24, 24), own, atol=1e-3)
+    # 30%: 10 x 10, k = 3: rendered at 30 x 30 with the embedding at 30/32, then 3 x 3 means
+    assert v.source_size(1, 10, 10) == (30, 30)
+    up = m.render(cam, 30 / 32, size=(30, 30)).image.numpy()
+    assert up.shape == (30, 30, 3)
+    np.testing.assert_allclose(v.load_image(1, 0.3).numpy(), up.reshape(10, 3, 10, 3, 3).mean((1, 3)), atol=1e-6)
+    assert not np.allclose(up, m.render(cam, 1.0, size=(30, 30)).image.numpy(), atol=1e-4)  # the embedding's xi
+    # the trainer reads the same targets (the 100% source from its float16 cache)
+    t = v.targets(1 << 20)
+    for xi in (1.0, 0.5, 0.75, 0.3, 0.1):
+        np.testing.assert_allclose(t.get(1, xi).numpy(), v.load_image(1, xi).numpy(), atol=1e-3)
+    # a non-square view: one k for both axes
+    w = TeacherViews(_model(), list(_model().cameras), targets="whole")
+    assert w.source_size(0, 10, 7) == (30, 21) and w.source_size(0, 16, 12) == (32, 24)
+    assert w.source_size(0, 11, 12) == (22, 24) and w.source_size(0, 32, 24) == (32, 24)
+    with pytest.raises(ProxycodecError, match="target rule"):
+        TeacherViews(m, list(m.cameras), targets="bogus")
+
+
+def test_auto_targets_are_whole_for_a_scene_fitted_at_random_resolutions_only(trained):
+    from proxycodec.distill import target_rule_for
+
+    assert resolution_aware(trained) and target_rule_for(trained) == "whole"
+    bare = _model()  # no training record: an imported Scaffold-GS output, say (trained at one size)
+    assert not resolution_aware(bare) and target_rule_for(bare) == "full"
+    fixed = SceneModel(trained.scene, trained.decoder, trained.cameras, trained.background,
+                       {"fit": {"config": {**trained.meta["fit"]["config"], "fixed_res": True}}})
+    assert target_rule_for(fixed) == "full" and target_rule_for(fixed, "whole") == "whole"
+    assert target_rule_for(trained, "full") == "full"
+    with pytest.raises(ProxycodecError, match="target rule"):
+        target_rule_for(trained, "bogus")
 
 
 # ------------------------------------------------------------------------------------------------ encode
@@ -186,7 +240,7 @@ def test_bad_distillation_settings_are_user_errors(tmp_path):
     for bad in ({"distill_iters": 0}, {"distill_iters": None, "distill_time_budget": None},
                 {"distill_views": 0}, {"distill": False, "images": str(tmp_path)}, {"quant_cells": 4},
                 {"quant_cells": 4, "lambda_rate": 1e-3, "distill": False}, {"quant_cells": 33, "lambda_rate": 1e-3},
-                {"distill_full_share": 1.5}, {"distill_full_share": -0.1}):
+                {"distill_full_share": 1.5}, {"distill_full_share": -0.1}, {"distill_targets": "nearest"}):
         with pytest.raises(ProxycodecError):
             codec.encode(m, tmp_path / "x.pxc", **{**QUICK, **bad})
     assert not (tmp_path / "x.pxc").exists()
@@ -252,8 +306,14 @@ def test_cli_encode_distils_and_reports(trained, tmp_path):
     out = json.loads(r.stdout)
     assert out["distill"]["iterations"] == 3 and len(out["distill"]["held_out"]["per_resolution"]) == 10
     assert out["distill"]["full_share"] == 0.5
+    assert out["distill"]["targets"] == "whole"  # a fit scene, trained at random resolutions (auto)
     assert "decoded vs source renders on held-out views" in r.stderr
     s = CliRunner().invoke(cli, ["stats", str(tmp_path / "s.pxc")])
-    assert s.exit_code == 0 and "distilled 3 iterations against the source's renders" in s.output, s.output
+    assert s.exit_code == 0 and "distilled 3 iterations against the source's renders (whole targets)" in s.output, \
+        s.output
+    r = CliRunner().invoke(cli, ["encode", str(ply), "-o", str(tmp_path / "f.pxc"), "--distill-iters", "1",
+                                 "--distill-views", "12", "--predictor-iters", "5", "--distill-targets", "full",
+                                 "--json"])
+    assert r.exit_code == 0 and json.loads(r.stdout)["distill"]["targets"] == "full", r.output
     r = CliRunner().invoke(cli, ["encode", str(ply), "--images", str(tmp_path / "nope")])
     assert r.exit_code == 2 and "Traceback" not in r.output

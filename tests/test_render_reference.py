@@ -141,3 +141,18 @@ def test_far_from_the_origin_float32_matches_float64():
                               1e-5, 2, "culling decisions")
     assert len(ia) > 100
     assert (p32.means2d[ia].double() - ref.means2d[ib]).abs().max() < 1e-3  # pixels
+
+
+def test_a_camera_sized_to_whole_pixels_sees_the_same_field_of_view():
+    """``Camera.sized`` (``scaled`` with the size given): the image corners map to the same rays at any size, and
+    ``scaled(xi)`` is ``sized`` of its rounded size."""
+    for w, h in ((46, 34), (7, 5), (23, 17), (30, 11)):
+        c = CAM.sized(w, h)
+        assert (c.width, c.height) == (w, h)
+        for u, v in ((0.0, 0.0), (1.0, 1.0), (0.25, 0.75)):  # image fractions -> normalised rays
+            ray = ((u * w - c.cx) / c.fx, (v * h - c.cy) / c.fy)
+            ref = ((u * CAM.width - CAM.cx) / CAM.fx, (v * CAM.height - CAM.cy) / CAM.fy)
+            np.testing.assert_allclose(ray, ref, rtol=0, atol=1e-12)
+    assert CAM.scaled(0.3) == CAM.sized(round(0.3 * 23), round(0.3 * 17))
+    with pytest.raises(Exception, match="at least 1 x 1"):
+        CAM.sized(0, 4)
