@@ -149,7 +149,7 @@ def test_distillation_renders_the_source_on_views_it_never_trained_on(pair):
     predictor was fitted on feature distance (L_recon) alone. (Where distillation pays is a real scene: on lego it
     recovers most of what the L_recon predictor loses; SPEC section 4.)"""
     m, plain, dist, _ = pair
-    views = TeacherViews(m, teacher_cameras(m, QUICK["distill_views"]))
+    views = TeacherViews(m, teacher_cameras(m, QUICK["distill_views"]), targets="whole")
     assert views.test_indices == dist.meta["distill"]["held_out"]["views"]
     assert not set(views.test_indices) & set(views.train_indices)
     p_plain, p_dist = held_out_report(plain.model, views)["psnr"], dist.meta["distill"]["held_out"]["psnr"]
@@ -174,8 +174,10 @@ def test_the_report_measures_held_out_views_at_ten_resolutions(pair):
     assert rep["psnr_same_xi"] == pytest.approx(np.mean([r["psnr_same_xi"] for r in rep["per_resolution"]]))
     assert held_out_report(m, TeacherViews(m, teacher_cameras(m, QUICK["distill_views"])),
                            resolutions=(0.3, 1.0))["psnr_same_xi"] is None
-    # the report is what the decoded file renders: recomputed from the decoded container it is the same
-    views = TeacherViews(m, teacher_cameras(m, QUICK["distill_views"]))
+    # the report is what the decoded file renders: recomputed from the decoded container it is the same (a fitted
+    # scene's targets: the whole-multiple rule, which the metadata records)
+    assert dist.meta["distill"]["targets"] == "whole"
+    views = TeacherViews(m, teacher_cameras(m, QUICK["distill_views"]), targets="whole")
     again = held_out_report(codec.decode(d / "dist.pxc"), views)
     assert again["views"] == rep["views"]
     np.testing.assert_allclose([r["psnr"] for r in again["per_resolution"]],
@@ -298,7 +300,7 @@ def test_cli_encode_distils_and_reports(trained, tmp_path):
     from proxycodec.cli.main import cli
 
     m = trained
-    ply, _ = m.save(tmp_path / "s.ply")
+    ply, _ = m.save(tmp_path / "s.ply", extra_meta={"fit": {"config": m.meta["fit"]["config"]}})  # fitted at random xi
     r = CliRunner().invoke(cli, ["encode", str(ply), "-o", str(tmp_path / "s.pxc"), "--distill-iters", "3",
                                  "--distill-views", "12", "--predictor-iters", "5",
                                  "--distill-full-share", "0.5", "--json"])
