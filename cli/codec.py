@@ -119,9 +119,9 @@ def encode(scene, out, weights, proxy_ratio, proxy_selection, cell_size, feature
         from ..convert import convert_and_encode
         from .convert import make_config
 
-        if images or weights or distill is False:
-            raise ProxycodecError("--images, --weights and --no-distill do not apply to a 3DGS PLY (it is converted "
-                                  "against its own renders)", p)
+        if images or weights or distill is False or distill_targets != "auto":
+            raise ProxycodecError("--images, --weights, --no-distill and --distill-targets do not apply to a 3DGS PLY "
+                                  "(it is converted against its own 100% renders, box-filtered down)", p)
         cfg = make_config(distill_iters, distill_time_budget, seed, voxel_size, views, view_size, background,
                           max_width)
         _, r = convert_and_encode(p, out, cfg, keep=keep_anchor_scene, log=_stderr, **knobs)

@@ -122,6 +122,10 @@ class FitConfig:
     lr_mlp_embed: tuple[float, float] = (0.004, 0.00004)
     lr_mlp_feature_bank: tuple[float, float] = (0.01, 0.00001)  # imported Scaffold-GS decoders with a feature bank
     lr_predictor: tuple[float, float] = (0.002, 0.00002)
+    # the learning rates above that are constant (features, scalings, the covariance MLP: Scaffold-GS's) decay
+    # exponentially to this multiple over the run; 1: constant, as Scaffold-GS. Distillation fine-tunes a converged
+    # scene and ends on 0.1 (``EncodeConfig.distill_lr_final``; SPEC.md section 4).
+    lr_constant_final: float = 1.0
     # every learning rate ramps up linearly over this fraction of the run (0: none, as Scaffold-GS). Fine-tuning a
     # converged scene needs it: Adam's first steps move every parameter by about its learning rate.
     lr_warmup: float = 0.0
@@ -207,6 +211,9 @@ class FitConfig:
         if self.quant_cells and not self.lambda_rate > 0:
             raise ProxycodecError("per-cell quantisation levels (quant cells) are learned by the rate term: "
                                   "give lambda_rate > 0")
+        if not (math.isfinite(self.lr_constant_final) and 0.0 < self.lr_constant_final <= 1.0):
+            raise ProxycodecError(f"the constant learning rates' final multiple must be in (0, 1], got "
+                                  f"{self.lr_constant_final}")
         if not (0.0 <= self.lr_warmup < 1.0):
             raise ProxycodecError(f"learning-rate warm-up must be a fraction of the run in [0, 1), got {self.lr_warmup}")
         if self.predictor_warmup < 0:
@@ -244,7 +251,7 @@ class FitConfig:
         if scale == 1.0:
             return self
         scaled = {f.name: (tuple(v * scale for v in lr) if isinstance(lr, tuple) else lr * scale)
-                  for f in fields(self) if f.name.startswith("lr_") and f.name not in ("lr_predictor", "lr_warmup")
+                  for f in fields(self) if f.name.startswith("lr_") and f.name not in ("lr_predictor", "lr_warmup", "lr_constant_final")
                   for lr in (getattr(self, f.name),)}
         return replace(self, **scaled)
 
@@ -419,6 +426,10 @@ class Trainer(TrainingRun):
                 lrs[name] = c.lr_quant_level
             elif name.startswith("rate."):
                 lrs[name] = c.lr_rate_model
+        if c.lr_constant_final != 1.0:
+            f = exp_lr(1.0, c.lr_constant_final, p)
+            for k in ("features", "scalings", *(n for n in lrs if n.startswith("decoder.mlp_cov."))):
+                lrs[k] *= f
         if c.lr_warmup > 0 and p < c.lr_warmup:
             ramp = p / c.lr_warmup
             lrs = {k: v * ramp for k, v in lrs.items()}

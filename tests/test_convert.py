@@ -277,6 +277,7 @@ def test_encode_converts_a_3dgs_ply_and_keeps_the_anchor_scene_when_asked(tmp_pa
 
 @pytest.mark.parametrize("args, message", [
     (["encode", "{src}", "--images", "{tmp}"], "do not apply to a 3DGS PLY"),
+    (["encode", "{src}", "--distill-targets", "whole"], "--distill-targets do not apply to a 3DGS PLY"),
     (["convert", "{tmp}/missing.ply", "-o", "{tmp}/o.ply"], "missing.ply"),
     (["convert", "{anchor}", "-o", "{tmp}/o.ply"], "`proxycodec encode`, `render` and `stats` take it"),
 ])

@@ -242,7 +242,8 @@ def test_bad_distillation_settings_are_user_errors(tmp_path):
     for bad in ({"distill_iters": 0}, {"distill_iters": None, "distill_time_budget": None},
                 {"distill_views": 0}, {"distill": False, "images": str(tmp_path)}, {"quant_cells": 4},
                 {"quant_cells": 4, "lambda_rate": 1e-3, "distill": False}, {"quant_cells": 33, "lambda_rate": 1e-3},
-                {"distill_full_share": 1.5}, {"distill_full_share": -0.1}, {"distill_targets": "nearest"}):
+                {"distill_full_share": 1.5}, {"distill_full_share": -0.1}, {"distill_targets": "nearest"},
+                {"distill_lr_final": 0.0}, {"distill_lr_final": 2.0}):
         with pytest.raises(ProxycodecError):
             codec.encode(m, tmp_path / "x.pxc", **{**QUICK, **bad})
     assert not (tmp_path / "x.pxc").exists()
@@ -257,14 +258,47 @@ def test_the_distillation_trains_with_fits_share_at_full_resolution(monkeypatch,
     seen = []
 
     def spy(source, config, **kw):
-        seen.append(config.xi_full_share)
+        seen.append((config.xi_full_share, config.lr_constant_final, kw["targets"]))
         raise RuntimeError("stop here")
 
     monkeypatch.setattr(distill_module, "distill", spy)
-    for kw in ({}, {"distill_full_share": 0.0}, {"distill_full_share": 0.6}):
+    for kw in ({}, {"distill_full_share": 0.0}, {"distill_full_share": 0.6, "distill_lr_final": 1.0,
+                                                 "distill_targets": "full"}):
         with pytest.raises(RuntimeError, match="stop here"):
             codec.encode(_model(60), tmp_path / "x.pxc", **{**QUICK, **kw})
-    assert seen == [FitConfig().xi_full_share, 0.0, 0.6] and seen[0] > 0
+    assert seen == [(FitConfig().xi_full_share, 0.1, "auto"), (0.0, 0.1, "auto"), (0.6, 1.0, "full")]
+    assert seen[0][0] > 0 and FitConfig().lr_constant_final == 1.0  # fit keeps Scaffold-GS's constant rates
+
+
+def test_the_constant_learning_rates_decay_to_their_final_multiple():
+    """``lr_constant_final``: features, scalings and the covariance MLP (constant in Scaffold-GS) decay
+    exponentially to that multiple over the run; every other group keeps its own schedule."""
+    from types import SimpleNamespace
+
+    from proxycodec.train import FitConfig, Trainer
+
+    names = ["features", "offsets", "scalings", "decoder.mlp_cov.0.weight", "decoder.mlp_color.0.weight",
+             "decoder.mlp_opacity.2.bias", "predictor.head.weight"]
+
+    def lrs(cfg, p):
+        fake = SimpleNamespace(cfg=cfg, opt=SimpleNamespace(params=dict.fromkeys(names)), stage=2)
+        return Trainer.learning_rates(fake, p)
+
+    const, decayed = FitConfig(stage2_start=0.0), FitConfig(stage2_start=0.0, lr_constant_final=0.1)
+    for p in (0.0, 0.3, 1.0):
+        a, b = lrs(const, p), lrs(decayed, p)
+        for k in ("features", "scalings", "decoder.mlp_cov.0.weight"):
+            assert b[k] == pytest.approx(a[k] * 0.1 ** p, rel=1e-12)
+        for k in ("offsets", "decoder.mlp_color.0.weight", "decoder.mlp_opacity.2.bias", "predictor.head.weight"):
+            assert b[k] == a[k]
+    assert lrs(const, 1.0)["features"] == const.lr_feature and lrs(const, 1.0)["scalings"] == const.lr_scaling
+    # with the warm-up, the ramp multiplies the decayed rate
+    w = lrs(FitConfig(stage2_start=0.0, lr_constant_final=0.1, lr_warmup=0.5), 0.25)
+    assert w["features"] == pytest.approx(const.lr_feature * 0.1 ** 0.25 * 0.5, rel=1e-12)
+    for bad in (0.0, 1.5, float("nan")):
+        with pytest.raises(ProxycodecError, match="final multiple"):
+            FitConfig(lr_constant_final=bad)
+    assert FitConfig(lr_constant_final=0.1).with_lr_scale(0.5).lr_constant_final == 0.1  # a multiple, not a rate
 
 
 # ------------------------------------------------------------------------------------------------ fitted scenes
