@@ -122,8 +122,11 @@ def encode(scene, out, weights, proxy_ratio, proxy_selection, cell_size, feature
         if images or weights or distill is False or distill_targets != "auto":
             raise ProxycodecError("--images, --weights, --no-distill and --distill-targets do not apply to a 3DGS PLY "
                                   "(it is converted against its own 100% renders, box-filtered down)", p)
-        cfg = make_config(distill_iters, distill_time_budget, seed, voxel_size, views, view_size, background,
-                          max_width)
+        # conversion's own length (ConvertConfig: 4000 iterations) unless --distill-iters is given: encode's default
+        # is the distillation's, measured for anchor scenes
+        given = click.get_current_context().get_parameter_source("distill_iters") != click.core.ParameterSource.DEFAULT
+        cfg = make_config(distill_iters if given else None, distill_time_budget, seed, voxel_size, views, view_size,
+                          background, max_width)
         _, r = convert_and_encode(p, out, cfg, keep=keep_anchor_scene, log=_stderr, **knobs)
     else:
         source = (scene, weights) if weights else scene

@@ -247,6 +247,26 @@ def test_render_takes_a_3dgs_ply(tmp_path):
     assert len(list((tmp_path / "r").glob("*.png"))) == 1
 
 
+def test_encode_of_a_3dgs_ply_trains_conversion_s_own_length_unless_told(tmp_path, monkeypatch):
+    """Encode's default --distill-iters is the distillation's (measured for anchor scenes); a 3DGS PLY's conversion
+    keeps ConvertConfig's length unless --distill-iters is given."""
+    import proxycodec.convert as convert_module
+
+    seen = []
+
+    def spy(ply, out, cfg, **kw):
+        seen.append(cfg.fit.iters)
+        raise ProxycodecError("stop here")
+
+    monkeypatch.setattr(convert_module, "convert_and_encode", spy)
+    src = tmp_path / "splats.ply"
+    write_inria_ply(src, _ball(20))
+    for extra in ([], ["--distill-iters", "12"]):
+        res = CliRunner().invoke(cli, ["encode", str(src), "-o", str(tmp_path / "s.pxc"), *extra])
+        assert res.exit_code == 2 and "stop here" in res.output
+    assert seen == [ConvertConfig().fit.iters, 12] and ConvertConfig().fit.iters == 4000
+
+
 def test_encode_converts_a_3dgs_ply_and_keeps_the_anchor_scene_when_asked(tmp_path):
     src = tmp_path / "splats.ply"
     write_inria_ply(src, _ball(200))
