@@ -15,8 +15,9 @@ box-filtered down by any ratio; the one render per view is cached) and "whole" (
 whole multiple of the target's size within 100%: a render on most iterations). Reported per rule (medians over
 repeats): the training seconds per iteration of the run, split into the student's and the targets' (each target
 fetch is timed: the teacher renders inside it); the steady state (the student plus the targets after the first
-epoch, when "full" has every 100% render cached) and its ratio to "full" measured in the same run; the peak RSS. Quality is not measured here (it needs
-the whole encode and the test photos: SPEC.md section 4, "Session 16", has the figures and the commands).
+epoch, when "full" has every 100% render cached) and its ratio to "full" measured in the same run; the peak RSS.
+The quality of the encodes is not measured here (it needs the whole encode and the test photos: SPEC.md section 4,
+"Session 16", has the figures and the commands).
 
 Outputs in ``--out`` (default ``benchmarks/results/distill_targets``): ``distill_targets.json`` (every figure,
 machine, versions, seed), ``distill_targets.md`` and ``distill_targets.png``.
@@ -170,7 +171,8 @@ def main(argv=None) -> int:
                      f"{s['student_s_per_iter'] * 1e3:.1f} | {s['steady_s_per_iter'] * 1e3:.1f} | "
                      f"{s['steady_vs_full']:.2f}x | {s['peak_rss_mb']:.0f} |")
     if quality is not None:
-        lines += ["", f"Targets against the photos of {args.dataset} ({len(quality['views'])} test views), PSNR dB:", "",
+        n_views = len(quality["views"])
+        lines += ["", f"Targets against the photos of {args.dataset} ({n_views} test views), PSNR dB:", "",
                   "| target | " + " | ".join(f"{x:.0%}" for x in quality["xi"]) + " | mean |",
                   "|---|" + "---:|" * (len(quality["xi"]) + 1)]
         for k, v in quality["psnr"].items():

@@ -83,9 +83,11 @@ def teacher_cameras(model: SceneModel, min_views: int, width: int = 256, height:
 TARGET_RULES = ("whole", "full")
 
 
-def check_target_rule(rule: str) -> None:
-    if rule not in TARGET_RULES + ("auto",):
-        raise ProxycodecError(f"unknown distillation target rule {rule!r}; choose from auto, {', '.join(TARGET_RULES)}")
+def check_target_rule(rule: str, auto: bool = True) -> None:
+    """A rule of ``TARGET_RULES``, or (with ``auto``) "auto"; else a one-line user error."""
+    allowed = (("auto",) if auto else ()) + TARGET_RULES
+    if rule not in allowed:
+        raise ProxycodecError(f"unknown distillation target rule {rule!r}; choose from {', '.join(allowed)}")
 
 
 def resolution_aware(model) -> bool:
@@ -116,8 +118,7 @@ class TeacherViews:
                  held_out: list[int] | None = None, targets: str = "full"):
         if not cameras:
             raise ProxycodecError("the scene has no cameras to distil from")
-        if targets not in TARGET_RULES:
-            raise ProxycodecError(f"unknown distillation target rule {targets!r}; choose from {', '.join(TARGET_RULES)}")
+        check_target_rule(targets, auto=False)
         self.teacher = teacher
         self.cameras = list(cameras)
         self.backend = backend
@@ -162,24 +163,31 @@ class TeacherViews:
     def load_image(self, i: int, xi: float = 1.0) -> torch.Tensor:
         """The teacher's target for view ``i`` at ``xi`` (float32 [h, w, 3]): its render at ``source_size``,
         area-averaged to the size of ``camera.scaled(xi)``."""
+        return self.target(i, xi, self._full_render)
+
+    def target(self, i: int, xi: float, full) -> torch.Tensor:
+        """``load_image`` with the 100% render taken from ``full(i)`` (float32 [H, W, 3]) where the rule uses it;
+        other sizes are rendered here."""
         from .formats.images import resize_image
 
         w, h = self.image_size(i, xi)
         size = self.source_size(i, w, h)
         cam = self.cameras[i]
-        if size != (cam.width, cam.height):
-            src = self.render(i, size)
-        else:
-            src = self._full.get(i)
-            if src is None:
-                src = self.render(i, size)
-                if i in self.test_indices:  # the report reads them at every resolution; training views are cached
-                    self._full[i] = src      # by the trainer's targets (``targets``), not twice
+        src = full(i) if size == (cam.width, cam.height) else self.render(i, size)
         return torch.from_numpy(resize_image(src, w, h) if (w, h) != src.shape[1::-1] else src.copy())
+
+    def _full_render(self, i: int) -> np.ndarray:
+        src = self._full.get(i)
+        if src is None:
+            cam = self.cameras[i]
+            src = self.render(i, (cam.width, cam.height))
+            if i in self.test_indices:  # the report reads them at every resolution; training views are cached
+                self._full[i] = src      # by the trainer's targets (``targets``), not twice
+        return src
 
     def targets(self, max_bytes: int):
         """The trainer's targets (``get(view, xi)``): the 100% renders kept in ``loop.TargetImages``' bounded cache
-        and area-averaged from there; sizes the rule renders at another size are rendered on demand."""
+        (float16) and area-averaged from there; sizes the rule renders at another size are rendered on demand."""
         return _TeacherTargets(self, TargetImages(self, max_bytes))
 
 
@@ -188,12 +196,7 @@ class _TeacherTargets:
         self.views, self.full = views, full
 
     def get(self, i: int, xi: float) -> torch.Tensor:
-        v = self.views
-        w, h = v.image_size(i, xi)
-        cam = v.cameras[i]
-        if v.source_size(i, w, h) == (cam.width, cam.height):
-            return self.full.get(i, xi)
-        return v.load_image(i, xi)
+        return self.views.target(i, xi, lambda j: self.full.reference(j).astype(np.float32))
 
 
 # ================================================================================================ the run

@@ -251,7 +251,8 @@ class FitConfig:
         if scale == 1.0:
             return self
         scaled = {f.name: (tuple(v * scale for v in lr) if isinstance(lr, tuple) else lr * scale)
-                  for f in fields(self) if f.name.startswith("lr_") and f.name not in ("lr_predictor", "lr_warmup", "lr_constant_final")
+                  for f in fields(self)
+                  if f.name.startswith("lr_") and f.name not in ("lr_predictor", "lr_warmup", "lr_constant_final")
                   for lr in (getattr(self, f.name),)}
         return replace(self, **scaled)
 
