@@ -65,8 +65,13 @@ def _stderr(msg: str) -> None:
 @click.option("--refit-predictor", is_flag=True,
               help="Ignore a stage-2 predictor/proxy split stored by `fit`; select proxies and fit anew.")
 @encode_option("--distill/--no-distill",
-               help="Fine-tune the proxy scene against the source scene's own renders (no images needed) "
-                    "[default: when the scene has no stage-2 predictor of its own].")
+               help="Force the path for a scene without a stage-2 predictor: fine-tune the proxy scene against the "
+                    "source's own renders (no images needed), or fit the predictor on feature distance (L_recon) "
+                    "alone [default: decided by measurement: L_recon first, distilled only when its decoded scene "
+                    "falls below --distill-threshold against the source].")
+@encode_option("--distill-threshold", show_default=True, type=float,
+               help="dB: the default path distils when the L_recon encode decodes below this, against the source "
+                    "rendered at the same resolution (held-out views at 10%, 30%, 100%).")
 @encode_option("--distill-iters", show_default=True, type=int, help="Distillation iterations.")
 @encode_option("--distill-time-budget", type=float,
                help="Seconds of distillation (with --distill-iters, whichever ends first).")
@@ -90,19 +95,26 @@ def encode(scene, out, weights, proxy_ratio, proxy_selection, cell_size, feature
            weights_dtype, predict_offsets, max_cameras, drop_dead_offsets, predictor_context, predictor_iters, leaf_sample,
            zstd_level,
            entropy, entropy_iters, lambda_rate, quant_cells, learned_steps, seed,
-           refit_predictor, distill, distill_iters, distill_time_budget, distill_views, distill_full_share,
+           refit_predictor, distill, distill_threshold, distill_iters, distill_time_budget, distill_views,
+           distill_full_share,
            distill_targets, images, keep_anchor_scene,
            voxel_size, views, view_size, background, max_width, as_json) -> None:
-    """Compress an anchor scene (Scaffold-GS PLY + weights sidecar, or a trained Scaffold-GS output: its folder or
-    its point_cloud.ply with the MLP files beside it) to a proxy-anchor container.
+    """Compress SCENE to a proxy-anchor container (writes OUT, default SCENE.pxc; prints its size).
 
-    A scene from `proxycodec fit` (stage 2) carries a residual predictor trained jointly with the rendering loss:
-    it is used as it is. Any other scene is distilled: the proxy scene (proxies, residual predictor, decoder) is
-    fine-tuned against the source scene's own renders at random resolutions, and the report gives the decoded
-    scene's PSNR/SSIM against the source on held-out views at 10%..100%.
+    SCENE: an anchor scene (PLY + its .weights.pxc sidecar, e.g. from `proxycodec fit` or `sample`), a trained
+    Scaffold-GS output (its folder, or its point_cloud.ply with the MLP files beside it), or an INRIA 3DGS PLY.
 
-    An INRIA 3DGS PLY is first converted (`proxycodec convert`: anchors from its Gaussians, trained against its own
-    renders for --distill-iters / --distill-time-budget), then its anchor scene is encoded.
+    \b
+    What happens by default:
+    - a scene with a stage-2 predictor (`fit` without --no-proxies): its proxies and predictor are used as fitted;
+      seconds.
+    - a scene without one (fit --no-proxies, a Scaffold-GS output, the sample): the predictor is fitted on feature
+      distance (L_recon, seconds), the decoded scene is rendered against the source on held-out views at 10%, 30%
+      and 100%, and one line says which path is taken: that encode is kept at or above --distill-threshold dB,
+      else the scene is distilled (fine-tuned against the source's own renders at random resolutions, no images
+      needed; minutes: lego ~15 on 2 cores) and the report gives its held-out PSNR against the source.
+    - an INRIA 3DGS PLY: converted first (`proxycodec convert`: anchors from its Gaussians, trained against its own
+      renders on its --background), then its anchor scene (with its stage-2 predictor) is encoded.
     """
     from .. import codec
     from ..explicit import is_inria_ply
@@ -119,9 +131,9 @@ def encode(scene, out, weights, proxy_ratio, proxy_selection, cell_size, feature
         from ..convert import convert_and_encode
         from .convert import make_config
 
-        if images or weights or distill is False or distill_targets != "auto":
-            raise ProxycodecError("--images, --weights, --no-distill and --distill-targets do not apply to a 3DGS PLY "
-                                  "(it is converted against its own 100% renders, box-filtered down)", p)
+        if images or weights or distill is not None or distill_targets != "auto":
+            raise ProxycodecError("--images, --weights, --distill/--no-distill and --distill-targets do not apply to a "
+                                  "3DGS PLY (it is converted against its own 100% renders, box-filtered down)", p)
         # conversion's own length (ConvertConfig: 4000 iterations) unless --distill-iters is given: encode's default
         # is the distillation's, measured for anchor scenes
         given = click.get_current_context().get_parameter_source("distill_iters") != click.core.ParameterSource.DEFAULT
@@ -129,9 +141,13 @@ def encode(scene, out, weights, proxy_ratio, proxy_selection, cell_size, feature
                           background, max_width)
         _, r = convert_and_encode(p, out, cfg, keep=keep_anchor_scene, log=_stderr, **knobs)
     else:
+        if background is not None:
+            raise ProxycodecError("--background applies to a 3DGS PLY; an anchor scene keeps the background it was "
+                                  "trained on", p)
         source = (scene, weights) if weights else scene
         r = codec.encode(source, out, **knobs, use_fitted=not refit_predictor, drop_dead_offsets=drop_dead_offsets,
-                         distill=distill, distill_iters=distill_iters, distill_time_budget=distill_time_budget,
+                         distill=distill, distill_threshold=distill_threshold, distill_iters=distill_iters,
+                         distill_time_budget=distill_time_budget,
                          distill_views=distill_views, distill_full_share=distill_full_share,
                          distill_targets=distill_targets, images=images,
                          progress=_stderr)
@@ -141,7 +157,18 @@ def encode(scene, out, weights, proxy_ratio, proxy_selection, cell_size, feature
         what = "the 3DGS PLY" if r.meta.get("convert") else "PLY + weights"
         ratio = f", {r.ratio:.1f}x smaller than {what}" if r.ratio else ""
         click.echo(f"wrote {r.path}: {r.file_bytes:,} B for {r.anchors} anchors ({r.proxies} proxies){ratio} "
-                   f"in {r.seconds['total']:.1f} s")
+                   f"in {r.seconds['total']:.1f} s; {choice_text(r.meta.get('encode_choice'))}")
+
+
+def choice_text(choice) -> str:
+    """The path encode took, in words (the encode summary and ``stats``)."""
+    if not isinstance(choice, dict):
+        return "path not recorded"
+    path = choice.get("path")
+    if choice.get("measured") is not None:
+        return (f"path {path} chosen by measurement: the L_recon encode decoded at {choice['measured']:.2f} dB "
+                f"against the source, threshold {choice.get('threshold')} dB")
+    return f"path {path}" + (" (forced)" if choice.get("forced") else "")
 
 
 def load_cameras(spec: str):
@@ -299,6 +326,7 @@ def stats(file, as_json) -> None:
             click.echo(f"  converted from the 3DGS PLY {(cv.get('source') or {}).get('name')}: "
                        f"{cv.get('iterations')} iterations against its renders; held-out PSNR vs them: "
                        + report_line(cv["report"].get("converted") or {}))
+        click.echo(f"  encode {choice_text((s['metadata'] or {}).get('encode_choice'))}")
         d = s.get("distill") or {}
         rep = d.get("held_out") if isinstance(d, dict) else None
         if isinstance(rep, dict) and isinstance(rep.get("per_resolution"), list):

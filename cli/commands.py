@@ -8,7 +8,7 @@ from pathlib import Path
 
 import click
 
-from .common import config_option, parse_resolutions, render_views, user_errors
+from .common import background_option, config_option, parse_resolutions, render_views, user_errors
 
 
 @click.command()
@@ -32,14 +32,20 @@ def sample(out: str, seed: int) -> None:
 @click.option("--view", "views", multiple=True, type=int, help="Camera index (repeatable; default: all stored).")
 @click.option("--backend", default="auto", show_default=True,
               type=click.Choice(["auto", "reference", "cpu", "cuda"]), help="Compositing backend.")
+@background_option("the scene's own (an anchor scene or container: the one it was trained on; a 3DGS PLY: "
+                   "white_background in the trainer's cfg_args beside it or two folders up, else black)")
 @user_errors
-def render(scene: str, res: str, out_dir: str, views: tuple[int, ...], backend: str) -> None:
-    """Render a scene at the given resolutions to PNG files: an anchor scene (PLY + weights, or a trained
-    Scaffold-GS output), a container, or an INRIA 3DGS PLY (as plain 3DGS, its cameras.json's views when it has
-    one)."""
+def render(scene: str, res: str, out_dir: str, views: tuple[int, ...], backend: str, background) -> None:
+    """Render a scene at the given resolutions to PNG files (OUT/viewNNN_resX.XXX.png).
+
+    Reads an anchor scene (PLY + weights, or a trained Scaffold-GS output), a container (leaves regenerated), or an
+    INRIA 3DGS PLY (as plain 3DGS: SH colours, no gate). Views: the scene's stored cameras (a 3DGS PLY: its
+    cameras.json's, else an orbit around it)."""
     from ..scenes import load_any
 
     model = load_any(scene)
+    if background is not None:
+        model.background = background
     render_views(model, parse_resolutions(res), Path(out_dir), list(views) or None, backend)
 
 
@@ -47,14 +53,15 @@ def render(scene: str, res: str, out_dir: str, views: tuple[int, ...], backend: 
 @click.option("-o", "--out", "out_dir", type=click.Path(file_okay=False), default="proxycodec-demo", show_default=True)
 @click.option("--res", "res", default="1.0,0.3,0.1", show_default=True, help="Resolution ratios to render.")
 @click.option("--backend", default="auto", show_default=True, type=click.Choice(["auto", "reference", "cpu", "cuda"]))
-@click.option("--predictor-iters", default=6000, show_default=True, type=int,
-              help="Predictor fitting iterations (encode's default is 2000; the demo spends more on its one scene).")
-@click.option("--predictor-context", default=4, show_default=True, type=int,
-              help="Proxies the predictor sees per leaf (encode's default too).")
+@click.option("--predictor-iters", default=None, type=int, help="Predictor fitting iterations [default: encode's].")
+@click.option("--predictor-context", default=None, type=int,
+              help="Proxies the predictor sees per leaf [default: encode's].")
 @user_errors
 def demo(out_dir: str, res: str, backend: str, predictor_iters: int, predictor_context: int) -> None:
-    """Run the whole pipeline on the built-in scene: build and save it, encode it to a proxy-anchor container,
-    print its stats, decode it and render original and decoded views at several resolutions, side by side."""
+    """Run the whole pipeline on the built-in scene: build and save it (OUT/sample.ply + weights), encode it with
+    encode's defaults (OUT/sample.pxc), print its stats, decode it and render original and decoded views at several
+    resolutions (OUT/renders/*.png), side by side (OUT/contact_sheet.png), with the PSNR of each decoded view
+    against the original (OUT/demo.json)."""
     from .. import codec
     from ..metrics import psnr
     from ..model import SceneModel
@@ -69,14 +76,12 @@ def demo(out_dir: str, res: str, backend: str, predictor_iters: int, predictor_c
     click.echo(f"built the sample scene: {model.scene.num_anchors} anchors in {time.perf_counter() - t0:.1f} s "
                f"-> {ply} ({ply.stat().st_size:,} B) + {weights.name} ({weights.stat().st_size:,} B)")
     model = SceneModel.load(ply)  # what a user would do: work from the files alone
-    # The built-in scene's decoder is set analytically and its features are made to be predictable from a proxy
-    # (SPEC section 6): the predictor fitted on L_recon regenerates the leaves closely, and distillation (the default
-    # for scenes without a stage-2 predictor) would only move that decoder away from its design (SPEC section 4).
-    # zstd, not the entropy model: on this scene the model's stream is larger (258,998 B against zstd's 186,388 B for
-    # the same symbols), so encode's "auto" keeps zstd anyway, after ~35 s fitting the nets
-    report = codec.encode(ply, out / "sample.pxc", predictor_iters=predictor_iters,
-                          predictor_context=predictor_context, distill=False, entropy="zstd",
-                          progress=lambda m: click.echo(m, err=True))
+    # encode's defaults, as a user's `proxycodec encode sample.ply` gets them: the scene has no stage-2 predictor, so
+    # encode fits one on L_recon, measures it against the scene and keeps it (the built-in scene's decoder is set
+    # analytically: distillation would only move it away from its design, SPEC section 6)
+    knobs = {k: v for k, v in (("predictor_iters", predictor_iters), ("predictor_context", predictor_context))
+             if v is not None}
+    report = codec.encode(ply, out / "sample.pxc", progress=lambda m: click.echo(m, err=True), **knobs)
     s = codec.stats(report.path)
     click.echo(f"encoded -> {report.path}: {s['file_bytes']:,} B, {s['bits_per_anchor']:.1f} bits/anchor, "
                f"{s['ratio']:.1f}x smaller than PLY + weights; sections: "

@@ -46,6 +46,35 @@ def parse_resolutions(text: str) -> list[float]:
     return [check_xi(v) for v in vals]
 
 
+class Background(click.ParamType):
+    """``--background``: ``auto`` (None: the scene's own), ``black``, ``white`` or ``R,G,B`` in [0, 1]."""
+
+    name = "auto|black|white|R,G,B"
+    NAMED = {"black": (0.0, 0.0, 0.0), "white": (1.0, 1.0, 1.0)}
+
+    def convert(self, value, param, ctx):
+        if value is None or isinstance(value, tuple):
+            return value
+        text = str(value).strip().lower()
+        if text == "auto":
+            return None
+        if text in self.NAMED:
+            return self.NAMED[text]
+        try:
+            rgb = tuple(float(x) for x in text.split(","))
+        except ValueError:
+            rgb = ()
+        if len(rgb) != 3 or not all(0.0 <= x <= 1.0 for x in rgb):
+            self.fail(f"{value!r} is not auto, black, white or three numbers in [0, 1] (R,G,B)", param, ctx)
+        return rgb
+
+
+def background_option(auto_help: str):
+    """``--background`` (default ``auto``: ``auto_help`` says what that is for the command)."""
+    return click.option("--background", type=Background(), default="auto", show_default=True,
+                        help=f"Background colour: black, white or R,G,B in [0, 1]; auto: {auto_help}.")
+
+
 class ConfigDefault(click.Option):
     """An option whose default is a field of a configuration dataclass (``config``: "module:Class"; ``field``: the
     option's name unless given; ``convert``: field value -> option value). The class is imported when click first

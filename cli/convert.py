@@ -8,12 +8,9 @@ import json
 
 import click
 
-from .common import config_option, user_errors
+from .common import background_option, config_option, user_errors
 
 convert_option = functools.partial(config_option, "proxycodec.convert:ConvertConfig")
-
-BACKGROUNDS = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}
-
 
 def convert_options(fn):
     """The options ``convert`` shares with ``encode`` of a 3DGS PLY."""
@@ -23,8 +20,8 @@ def convert_options(fn):
         convert_option("--views", "views", type=int, show_default=True,
                        help="Automatic teacher views when no cameras.json sits beside the PLY."),
         convert_option("--view-size", type=int, show_default=True, help="Their width and height in pixels."),
-        click.option("--background", type=click.Choice(sorted(BACKGROUNDS)), default="white", show_default=True,
-                     help="Background the source is rendered on (3DGS trainers: black unless --white_background)."),
+        background_option("the one the PLY was trained on: white_background in the trainer's cfg_args beside it "
+                          "(or two folders up), else black, the 3DGS trainers' default; the anchor scene keeps it"),
         click.option("--max-width", type=int, default=800, show_default=True,
                      help="Teacher views from cameras.json are downscaled to this width."),
     ]):
@@ -35,7 +32,7 @@ def convert_options(fn):
 def make_config(iters, time_budget, seed, voxel_size, views, view_size, background, max_width):
     from ..convert import ConvertConfig, replace_fit
 
-    cfg = ConvertConfig(voxel_size=voxel_size, views=views, view_size=view_size, background=BACKGROUNDS[background])
+    cfg = ConvertConfig(voxel_size=voxel_size, views=views, view_size=view_size, background=background)
     run = {"max_width": max_width, "seed": seed}
     if iters is not None or time_budget is not None:
         run.update(iters=iters, time_budget=time_budget)

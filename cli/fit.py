@@ -9,7 +9,7 @@ from pathlib import Path
 
 import click
 
-from .common import config_option, parse_resolutions, user_errors
+from .common import background_option, config_option, parse_resolutions, user_errors
 
 #: Options whose default is the field of the same name of ``FitConfig`` (``ExplicitConfig``: ``--explicit`` only).
 fit_option = functools.partial(config_option, "proxycodec.train:FitConfig")
@@ -190,9 +190,11 @@ def _fit_explicit(dataset, out, run: dict, max_width, seed, images, test_every, 
 @click.option("--gate", "gate_mode", type=click.Choice(["model", "on", "off"]), default="model", show_default=True,
               help="Coverage gate when rendering: the model's own setting, or forced on (post-hoc gating of a "
                    "model trained with --no-gate, with its stored kappa/eta) or off.")
+@background_option("the dataset's (its photos are composited on it) for a 3DGS PLY; an anchor scene or container "
+                   "renders on the one it was trained on")
 @user_errors
 def eval_cmd(scene, dataset, out_dir, max_width, res, protocol, n_views, images, test_every, no_undistort, backend,
-             gate_mode) -> None:
+             gate_mode, background) -> None:
     """Evaluate SCENE on DATASET's test views at many resolutions: PSNR/SSIM/time/Gaussians, JSON + markdown +
     plot + side-by-side crops."""
     from ..errors import ProxycodecError
@@ -210,7 +212,9 @@ def eval_cmd(scene, dataset, out_dir, max_width, res, protocol, n_views, images,
     if max_width is None:
         max_width = (fit_meta.get("config") or {}).get("max_width")
     data = _load_data(dataset, max_width, images, test_every, not no_undistort)
-    if isinstance(model, ExplicitModel):  # a PLY carries no background: the dataset's, as in training
+    if background is not None:
+        model.background = background
+    elif isinstance(model, ExplicitModel):  # the dataset's: its photos are composited on it
         model.background = tuple(data.background)
     if protocol == "mip-splatting" and res:
         raise ProxycodecError("--res cannot be combined with --protocol mip-splatting (its scales are fixed)")

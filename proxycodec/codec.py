@@ -74,7 +74,9 @@ class EncodeConfig:
     predictor_hidden: int = 64
     predictor_blocks: int = 2
     predictor_context: int = 4  # proxies the (refitted) predictor sees per leaf
-    predictor_iters: int = 2000
+    # [D] 6000: on the built-in scene (context 4) the decoded views gain 5-6 dB over 2000 iterations (SPEC.md
+    # section 6) for ~10 s; a scene with a stage-2 predictor skips this fit, a distilled one trains its own
+    predictor_iters: int = 6000
     predictor_lr: float = 2e-3
     leaf_sample: float = 0.2  # fraction of the leaves per predictor iteration [S Fig. 12]
     zstd_level: int = 19
@@ -98,11 +100,18 @@ class EncodeConfig:
     drop_dead_offsets: bool = False
     dead_threshold: float = -0.02
     # Distillation (``proxycodec.distill``): fine-tune the proxy scene against the source scene's own renders.
-    # None: when the scene has no stage-2 predictor (a fitted one is used as it is); True / False: always / never
-    # (never: the predictor is fitted on feature distance, L_recon, alone).
+    # None: decided by measurement for a scene without a stage-2 predictor (a fitted one is used as it is): its
+    # L_recon encode is rendered against the source, and distilled only when that falls below distill_threshold;
+    # True / False: always / never (never: the predictor is fitted on feature distance, L_recon, alone).
     distill: bool | None = None
-    # [D] 3600 since session 16 (4000 before): the whole-multiple targets render the teacher on most iterations
-    # (1.40x per iteration); lego's encode measured 15:14 and 18:17 on 2 cores (SPEC.md section 4)
+    # [D] the choice's threshold, dB against the source rendered at the same resolution (mean over choice_views
+    # held-out views at choice_resolutions): between what L_recon reaches where distillation pays (lego's no-proxy
+    # fit) and where it does not (the built-in scene); the table is in SPEC.md section 4
+    distill_threshold: float = 40.0
+    choice_resolutions: tuple[float, ...] = (0.1, 0.3, 1.0)
+    choice_views: int = 4
+    # [D] 3600 iterations: the whole-multiple targets render the teacher on most iterations (1.40x per iteration);
+    # lego's encode measured 15:14 and 18:17 on 2 cores (benchmarks/README.md)
     distill_iters: int | None = 3600
     distill_time_budget: float | None = None  # seconds; with distill_iters, whichever ends first
     distill_views: int = 32  # teacher views at least: automatic views are added around the scene up to this many
@@ -159,6 +168,14 @@ class EncodeConfig:
                                   f"{self.distill_lr_final}")
         if self.distill_views < 1:
             raise ProxycodecError(f"distill views must be >= 1, got {self.distill_views}")
+        if not math.isfinite(self.distill_threshold):
+            raise ProxycodecError(f"distill threshold must be a finite number of dB, got {self.distill_threshold}")
+        if self.choice_views < 1 or not self.choice_resolutions:
+            raise ProxycodecError("the encode path's choice needs at least one view and one resolution")
+        from .camera import check_xi
+
+        for xi in self.choice_resolutions:
+            check_xi(xi)
         if not (0.0 <= self.distill_full_share <= 1.0):
             raise ProxycodecError(f"distill full share must be in [0, 1], got {self.distill_full_share}")
         if self.quant_cells and not (self.lambda_rate > 0 and self.distill is not False):
@@ -174,7 +191,8 @@ class EncodeConfig:
         return self
 
     def distilling(self, has_fitted_predictor: bool) -> bool:
-        """Whether ``encode`` distils a scene (with or without a stage-2 predictor of its own)."""
+        """Whether ``encode`` distils a scene with a stage-2 predictor it uses, or on a forced path (without one and
+        ``distill`` None, ``encode`` decides by measurement)."""
         if self.images is not None:
             return True
         return (not has_fitted_predictor) if self.distill is None else self.distill
@@ -204,6 +222,7 @@ class EncodeReport:
                 "proxies": self.proxies, "leaves": self.leaves, "cell_size": self.cell_size,
                 "source_bytes": self.source_bytes, "ratio": self.ratio, "seconds": self.seconds,
                 "sections": self.sections, "distill": self.meta.get("distill"),
+                "encode_choice": self.meta.get("encode_choice"),
                 "predictor": None if self.training is None else {
                     "baseline_loss": self.training.baseline_loss, "final_loss": self.training.final_loss,
                     "iters": self.training.iters}}
@@ -279,15 +298,76 @@ def encode(
     cfg = replace(config or EncodeConfig(), **knobs)
     say = progress or _progress_default
     t_start = time.perf_counter()
-    # 1. the scene, its positions coded and every per-anchor array in the stored (Morton) order
+    # 1. the scene (and the stage-2 predictor + proxy split a ``fit`` output carries)
     model, source_bytes, source_name, fitted = _source_model(source)
     _checked_scene(model, source_name)
-    distilled = None
-    if predictor is None and cfg.distilling(fitted[0] is not None):
-        source_model = model
-        distilled = _distill(model, fitted if cfg.use_fitted else (None, None), cfg, say)
-        model, fitted = distilled.model, (distilled.predictor, distilled.proxy_mask)
-        cfg = replace(cfg, use_fitted=True)
+    if source_bytes is None:
+        source_bytes = _saved_size(model)
+    has_fitted = fitted[0] is not None and cfg.use_fitted  # a stage-2 predictor, used as fitted
+    distilled = choice = built = None
+    if predictor is None and cfg.distill is None and cfg.images is None and not has_fitted:
+        # 2a. no predictor of its own and no forced path: the fast path first, distillation only if it falls short
+        built = _build(model, fitted, cfg, None, say)
+        choice = _choose_path(built.decoded, model, cfg, say)
+        if choice["path"] == "distill":
+            distilled = _distill(model, (None, None), cfg, say)
+    else:
+        if predictor is None and cfg.distilling(has_fitted):
+            distilled = _distill(model, fitted if cfg.use_fitted else (None, None), cfg, say)
+        choice = {"path": "distill" if distilled is not None else "stage-2 predictor" if has_fitted and
+                  predictor is None else "L_recon", "forced": cfg.distill is not None or cfg.images is not None}
+    if distilled is not None:
+        # 2b. the distilled proxy scene, its predictor and split used as fitted
+        built = _build(distilled.model, (distilled.predictor, distilled.proxy_mask), replace(cfg, use_fitted=True),
+                       None, say, distilled=distilled)
+    elif built is None:
+        built = _build(model, fitted, cfg, predictor, say)
+    cfg, meta, sections, decoded = built.cfg, built.meta, built.sections, built.decoded
+    meta["source"] = {"bytes": source_bytes, "name": os.path.basename(source_name)}
+    meta["encode_choice"] = _jsonable(choice)
+    if distilled is not None:
+        meta["distill"]["held_out"] = _held_out(decoded, model, distilled, cfg, say)
+    for k, v in (extra_meta or {}).items():  # the caller's word wins (convert: the source is the 3DGS PLY)
+        meta[k] = _jsonable(v)
+    t_entropy = time.perf_counter()
+    raw = frozenset()
+    if _entropy_coded(cfg, meta):
+        sections, raw = _entropy_code(sections, meta, built.pos_sorted, built.voxel, built.mask, cfg, say)
+    t_entropy = time.perf_counter() - t_entropy
+    packed, meta["weights_layout"] = pack_weights(sections)
+    file_bytes = write_container(out, meta, packed, level=cfg.zstd_level, raw_sections=raw)
+    _, _, infos, _ = read_header(out)
+    say(f"wrote {out}: {file_bytes:,} B" + (f" ({source_bytes / file_bytes:.1f}x smaller than PLY + weights)"
+                                           if source_bytes else ""))
+    M, P = len(built.mask), int(built.mask.sum())
+    return EncodeReport(
+        path=Path(out), file_bytes=file_bytes, anchors=M, proxies=P, leaves=M - P, cell_size=built.cell_size,
+        sections=[s.to_json() for s in infos], source_bytes=source_bytes,
+        seconds={"total": time.perf_counter() - t_start, "predictor": built.t_train, "entropy": t_entropy,
+                 **({} if choice.get("seconds") is None else {"choice": choice["seconds"]}),
+                 **({} if distilled is None else {"distill": distilled.seconds})}, training=built.training,
+        model=decoded, meta=meta)
+
+
+@dataclass
+class _Built:
+    """A scene's container contents before entropy coding (``_build``)."""
+    cfg: EncodeConfig  # with the proxy source and offsets mode settled
+    meta: dict
+    sections: dict
+    decoded: SceneModel  # exactly what the decoder makes of ``sections``
+    mask: np.ndarray  # proxies, in the stored (Morton) order
+    pos_sorted: np.ndarray
+    voxel: float
+    cell_size: float
+    training: TrainResult
+    t_train: float
+
+
+def _build(model: SceneModel, fitted: tuple, cfg: EncodeConfig, predictor: ResidualPredictor | None, say: Progress,
+           distilled=None) -> _Built:
+    """Positions coded, proxies chosen, attributes quantised, the predictor fitted (L_recon, against the
+    dequantised proxies), sections and metadata made, and the scene decoded from them as ``decode`` will."""
     scene = model.scene
     K, Fd, voxel = scene.n_offsets, scene.feat_dim, float(scene.voxel_size)
     pos = scene.positions.detach().cpu().numpy().astype(np.float32)
@@ -295,19 +375,16 @@ def encode(
     feats, offs, scal = (getattr(scene, k).detach().float()[torch.from_numpy(coding.order)].numpy()
                          for k in ("features", "offsets", "scalings"))
     pos_sorted = pos[coding.order]
-    # 2. proxies and the predictor to start from (those of stage-2 training, when the scene comes from ``fit``)
+    # proxies and the predictor to start from (those of stage-2 training, when the scene comes from ``fit``)
     mask, predictor, cfg, cell_size, proxy_source = _choose_proxies(cfg, pos_sorted, voxel, coding.order, fitted,
                                                                     predictor, say)
-    # 3. quantise what is stored; 4. fit the predictor against what the decoder will see
+    # quantise what is stored; fit the predictor against what the decoder will see
     steps = _learned_steps(scene.metadata, cfg, Fd, K)
     q = quantize_anchors(feats, offs, scal, mask, feature_bits=cfg.feature_bits, offset_bits=cfg.offset_bits,
                          scaling_bits=cfg.scaling_bits, predict_offsets=cfg.predict_offsets, steps=steps,
                          positions=pos_sorted, voxel=voxel)
     pred, tcfg, training, t_train = _fit_predictor(cfg, predictor, pos_sorted, mask, q, offs, Fd, K, voxel, say)
-    # 5. sections + metadata
     sections = scene_sections(coding, mask, q, model.decoder.state_arrays(), pred.state_arrays(), cfg.weights_dtype)
-    if source_bytes is None:
-        source_bytes = _saved_size(model)
     meta = scene_metadata(
         coding, mask, q, feat_dim=Fd, n_offsets=K, voxel_size=voxel, bounds=np.stack([pos.min(0), pos.max(0)]),
         predict_offsets=cfg.predict_offsets, weights_dtype=cfg.weights_dtype, decoder_config=model.decoder.config,
@@ -319,39 +396,61 @@ def encode(
                "cell_size_voxels": cell_size / voxel, "cell_target": cfg.cell_target, "seed": cfg.seed},
         cameras_in_source=len(model.cameras or []),
         scene=_jsonable({k: v for k, v in scene.metadata.items() if k != "quant_steps"}),  # steps: in "quant"
-        source={"bytes": source_bytes, "name": os.path.basename(source_name)},
+        source={},
         encoder={"zstd_level": cfg.zstd_level, "proxycodec": _version()},
         **({} if distilled is None else {"distill": {
             "iterations": distilled.iterations, "images": cfg.images,
             "teacher_views": len(distilled.views.train_indices),
             "full_share": cfg.distill_full_share, "targets": distilled.views.rule if cfg.images is None else None,
             "loss": "fit's rendering loss, random xi"}}))
-    # 6. the decoded model, through the decoder's own path (so report.model == decode(out), bit for bit)
-    err = ProxycodecError
-    decoded = _model_from_sections(meta, sections, err)
+    # the decoded model, through the decoder's own path (so report.model == decode(out), bit for bit)
+    decoded = _model_from_sections(meta, sections, ProxycodecError)
     if cfg.drop_dead_offsets and not cfg.predict_offsets:
         decoded = _drop_dead_offsets(decoded, sections, meta, q, cfg.dead_threshold, say)
-    if distilled is not None:
-        meta["distill"]["held_out"] = _held_out(decoded, source_model, distilled, cfg, say)
-    for k, v in (extra_meta or {}).items():  # the caller's word wins (convert: the source is the 3DGS PLY)
-        meta[k] = _jsonable(v)
-    t_entropy = time.perf_counter()
-    raw = frozenset()
-    if _entropy_coded(cfg, meta):
-        sections, raw = _entropy_code(sections, meta, pos_sorted, voxel, mask, cfg, say)
-    t_entropy = time.perf_counter() - t_entropy
-    packed, meta["weights_layout"] = pack_weights(sections)
-    file_bytes = write_container(out, meta, packed, level=cfg.zstd_level, raw_sections=raw)
-    _, _, infos, _ = read_header(out)
-    say(f"wrote {out}: {file_bytes:,} B" + (f" ({source_bytes / file_bytes:.1f}x smaller than PLY + weights)"
-                                           if source_bytes else ""))
-    M, P = len(mask), int(mask.sum())
-    return EncodeReport(
-        path=Path(out), file_bytes=file_bytes, anchors=M, proxies=P, leaves=M - P, cell_size=cell_size,
-        sections=[s.to_json() for s in infos], source_bytes=source_bytes,
-        seconds={"total": time.perf_counter() - t_start, "predictor": t_train, "entropy": t_entropy,
-                 **({} if distilled is None else {"distill": distilled.seconds})}, training=training,
-        model=decoded, meta=meta)
+    return _Built(cfg, meta, sections, decoded, mask, pos_sorted, voxel, cell_size, training, t_train)
+
+
+def against_source(decoded: SceneModel, source: SceneModel, cfg: EncodeConfig) -> dict:
+    """The measurement behind encode's choice of path: ``decoded`` against ``source`` rendered at the same
+    resolution, on ``cfg.choice_views`` views evenly spread over the teacher's (``distill.teacher_cameras``: the
+    L_recon fit sees no image, so none was trained on) at ``cfg.choice_resolutions``; per resolution the mean PSNR
+    over the views (each capped at ``CHOICE_PSNR_CAP``), and ``measured``, their mean."""
+    from .distill import teacher_cameras
+    from .metrics import psnr
+
+    t0 = time.perf_counter()
+    cams = teacher_cameras(source, cfg.distill_views)
+    idx = _spread(list(range(len(cams))), cfg.choice_views)
+    rows = []
+    with torch.no_grad():
+        for xi in cfg.choice_resolutions:
+            vals = []
+            for i in idx:
+                cam = cams[i]
+                a = decoded.render(cam, xi).image.clamp(0, 1)
+                b = source.render(cam, xi).image.clamp(0, 1)
+                vals.append(min(psnr(a, b), CHOICE_PSNR_CAP))
+            rows.append({"xi": float(xi), "psnr": float(np.mean(vals))})
+    return {"measured": float(np.mean([r["psnr"] for r in rows])), "per_resolution": rows,
+            "views": [int(i) for i in idx], "seconds": time.perf_counter() - t0}
+
+
+def _choose_path(decoded: SceneModel, source: SceneModel, cfg: EncodeConfig, say: Progress) -> dict:
+    """Whether a scene without a stage-2 predictor is distilled: its L_recon encode (``decoded``) is measured
+    against the source (``against_source``); below ``cfg.distill_threshold`` dB it is."""
+    m = against_source(decoded, source, cfg)
+    measured, rows = m["measured"], m["per_resolution"]
+    path = "L_recon" if measured >= cfg.distill_threshold else "distill"
+    per_res = ", ".join(f"{r['xi']:g}: {r['psnr']:.2f}" for r in rows)
+    say(f"encode path: {'L_recon predictor kept' if path == 'L_recon' else 'distilling'}: the L_recon predictor "
+        f"decodes at {measured:.2f} dB against the source ({per_res} on {len(m['views'])} views), "
+        f"{'at or above' if path == 'L_recon' else 'below'} the threshold {cfg.distill_threshold:g} dB "
+        f"({'--distill' if path == 'L_recon' else '--no-distill'} forces the other path; {m['seconds']:.1f} s)")
+    return {"path": path, "forced": False, "threshold": cfg.distill_threshold, **m}
+
+
+#: PSNR of identical renders is infinite; the choice's mean caps each view's at this
+CHOICE_PSNR_CAP = 100.0
 
 
 def _learned_steps(scene_meta: dict, cfg: EncodeConfig, Fd: int, K: int) -> dict | None:
@@ -391,6 +490,13 @@ def _entropy_coded(cfg: EncodeConfig, meta: dict) -> bool:
 AUTO_MAX_SAVING = 0.25
 
 
+#: ``entropy="auto"`` does not fit the model when zstd's bytes are below this multiple of the model's starting point
+#: (``entropy_fit.start_bytes``: a Laplace per channel, no context). The fit gains 9% on it on the built-in scene
+#: (zstd at 0.66x: the model ends 39% above zstd, after ~30 s of fitting); where the model wins, zstd sits near the
+#: start (SPEC.md section 4).
+AUTO_MIN_START_RATIO = 0.8
+
+
 def _net_shapes(F: int, K: int, hidden: int) -> list[tuple[int, int]]:
     from . import entropy  # noqa: PLC0415
 
@@ -420,6 +526,11 @@ def _entropy_code(sections: dict, meta: dict, pos_sorted: np.ndarray, voxel: flo
     a = entropy.Attributes(feats, entropy.centred(sections[SCALINGS].T, bits["scalings"]),
                            entropy.centred(sections[OFFSETS].T, bits["offsets"]))
     ctx = entropy.Context.of(pos_sorted, voxel, mask)
+    start = entropy_fit.start_bytes(ctx, a)
+    if cfg.entropy == "auto" and zstd_bytes < AUTO_MIN_START_RATIO * start:
+        say(f"entropy model: zstd's {zstd_bytes:,} B are {zstd_bytes / start:.2f}x the model's starting point "
+            f"({start:,.0f} B; below {AUTO_MIN_START_RATIO:g}x its fit cannot catch up): zstd kept (scene format 2)")
+        return sections, frozenset()
     nets, _ = entropy_fit.fit_nets(ctx, a, hidden=cfg.entropy_hidden, iters=cfg.entropy_iters, seed=cfg.seed,
                                    progress=say)
     coded, emeta, sizes = entropy.encode(ctx, nets, a, bits)

@@ -60,7 +60,9 @@ class ConvertConfig:
     init_iters: int = 400  # regression steps of fit_attributes
     views: int = 64  # automatic teacher views when the PLY has no cameras.json
     view_size: int = 400  # their width and height
-    background: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    # the background the source is rendered on (and the anchor scene's); None: the one the PLY was trained on
+    # (``explicit.ply_background``: its cfg_args, else black)
+    background: tuple[float, float, float] | None = None
     lr_scale: float = 1.0  # fit's learning rates of the anchors and the decoder times this (FitConfig.with_lr_scale)
 
     def __post_init__(self) -> None:
@@ -70,7 +72,8 @@ class ConvertConfig:
             raise ProxycodecError(f"voxel size must be a finite number >= 0 (0: automatic), got {self.voxel_size}")
         if self.max_anchors < 1 or self.init_iters < 0 or self.views < 2 or self.view_size < 8:
             raise ProxycodecError("max_anchors >= 1, init_iters >= 0, views >= 2 and view_size >= 8 are required")
-        if len(self.background) != 3 or not all(0.0 <= b <= 1.0 for b in self.background):
+        if self.background is not None and (len(self.background) != 3 or not all(
+                0.0 <= b <= 1.0 for b in self.background)):
             raise ProxycodecError(f"background must be 3 numbers in [0, 1], got {self.background}")
 
 
@@ -351,7 +354,9 @@ def initial_model(g: Gaussians, cfg: ConvertConfig, cameras: list[Camera], log: 
     cam_c = np.array([c.center for c in cameras])
     dist = float(np.median(np.linalg.norm(cam_c - center, axis=1))) if len(cam_c) else radius
     scene = fit_attributes(scene, dec, targets, g.degree, dist, cfg.init_iters, fc.seed, log)
-    return SceneModel(scene, dec.eval(), list(cameras), tuple(cfg.background)), choice
+    from .explicit import PLY_BACKGROUND
+
+    return SceneModel(scene, dec.eval(), list(cameras), tuple(cfg.background or PLY_BACKGROUND)), choice
 
 
 def convert(ply_path: str | os.PathLike, out_ply: str | os.PathLike, config: ConvertConfig = ConvertConfig(), *,
@@ -361,7 +366,7 @@ def convert(ply_path: str | os.PathLike, out_ply: str | os.PathLike, config: Con
     atomically by ``fit``; resumable from its checkpoint, ``<out>.ckpt.pxc``, saved on interrupt as ``fit`` saves
     it). ``stop_after`` (tests): interrupt after that many training iterations."""
     from .distill import TeacherViews, held_out_report, report_line
-    from .explicit import ExplicitModel
+    from .explicit import ExplicitModel, ply_background
     from .formats.inria_ply import read_inria_ply
     from .scaffold_gs import find_cameras_json, read_scaffold_cameras
     from .train import fit
@@ -371,8 +376,14 @@ def convert(ply_path: str | os.PathLike, out_ply: str | os.PathLike, config: Con
     ply = read_inria_ply(ply_path)
     g = load_gaussians(ply)
     log(f"convert: {ply.n_gaussians:,} Gaussians, SH degree {ply.sh_degree}, extent {g.extent:.4g}")
+    if config.background is None:
+        bg, where = ply_background(ply_path)
+        config = replace(config, background=bg)
+    else:
+        where = "given"
+    log(f"background: {' '.join(f'{b:g}' for b in config.background)} ({where})")
     teacher = ExplicitModel(ply, tuple(config.background),
-                            {"kind": "inria-3dgs", "source": str(Path(ply_path))})
+                            {"kind": "inria-3dgs", "source": str(Path(ply_path)), "background_from": where})
     cj = find_cameras_json(ply_path)
     layout = None
     if cj is not None:

@@ -437,6 +437,26 @@ def run_explicit(data, cfg: ExplicitConfig = ExplicitConfig(), log: ProgressFn |
 
 
 # ================================================================================================ rendering a PLY
+#: [D] the background a 3DGS PLY is rendered on when nothing says otherwise: black, the default of the reference
+#: trainer (``--white_background`` off), gsplat and nerfstudio; a PLY trained on black and composited on white shows
+#: white haze wherever its accumulated alpha is below 1
+PLY_BACKGROUND = (0.0, 0.0, 0.0)
+
+
+def ply_background(path: str | os.PathLike) -> tuple[tuple[float, float, float], str]:
+    """(RGB, where it comes from) of the background a 3DGS PLY was trained on: the ``white_background`` of the
+    trainer's ``cfg_args`` (``Namespace(...)``, read without ``eval``) beside the PLY or two folders up, as 3DGS and
+    Scaffold-GS write it; else ``PLY_BACKGROUND``. An unreadable ``cfg_args`` is a one-line error naming it."""
+    from .scaffold_gs import find_beside, read_cfg_args
+
+    cfg_path = find_beside(path, "cfg_args")
+    if cfg_path is not None:
+        white = read_cfg_args(cfg_path).get("white_background")
+        if isinstance(white, bool):
+            return ((1.0, 1.0, 1.0) if white else (0.0, 0.0, 0.0)), f"{cfg_path} (white_background={white})"
+    return PLY_BACKGROUND, "default (black, the 3DGS trainers' default)"
+
+
 def is_inria_ply(path: str | os.PathLike) -> bool:
     """True when ``path`` is a PLY whose header has INRIA 3DGS fields (f_dc_0, opacity, no anchor features)."""
     from .formats.ply import read_ply_header
@@ -499,15 +519,16 @@ class ExplicitModel:
                                     background=self.background, gate=NO_GATE, backend=backend)
 
     @staticmethod
-    def load(path: str | os.PathLike, background=(1.0, 1.0, 1.0)) -> ExplicitModel:
+    def load(path: str | os.PathLike, background=None) -> ExplicitModel:
         """The PLY at ``path``, with the views of a 3DGS ``cameras.json`` beside it (or two folders up, 3DGS's
-        output layout) when there is one, else an orbit around its Gaussians."""
+        output layout) when there is one, else an orbit around its Gaussians. ``background``: RGB in [0, 1]; None:
+        the one the PLY was trained on (``ply_background``)."""
         from .camera import default_cameras
         from .scaffold_gs import find_cameras_json, read_scaffold_cameras
 
         ply = read_inria_ply(path)
         cj = find_cameras_json(path)
-        model = ExplicitModel(ply, tuple(float(b) for b in background),
-                              {"kind": "inria-3dgs", "source": str(Path(path))})
+        bg, where = ply_background(path) if background is None else (tuple(float(b) for b in background), "given")
+        model = ExplicitModel(ply, bg, {"kind": "inria-3dgs", "source": str(Path(path)), "background_from": where})
         model.cameras = read_scaffold_cameras(cj) if cj else default_cameras(None, model.scene.bounds())
         return model

@@ -34,7 +34,7 @@ from .errors import ProxycodecError
 from .formats.torchscript import ScriptObject, read_torch_checkpoint, read_torchscript
 
 __all__ = ["ScaffoldFiles", "is_scaffold_output", "find_scaffold_files", "load_scaffold_output",
-           "read_cfg_args", "read_scaffold_cameras", "find_cameras_json", "write_cameras_json", "SPLIT_FILES",
+           "read_cfg_args", "read_scaffold_cameras", "find_beside", "find_cameras_json", "write_cameras_json", "SPLIT_FILES",
            "CHECKPOINT_FILE"]
 
 #: Mode "split": one TorchScript archive per network (Scaffold-GS's file names).
@@ -229,16 +229,22 @@ def read_scaffold_cameras(path: str | os.PathLike) -> list[Camera]:
     return cams
 
 
-def find_cameras_json(ply_path: str | os.PathLike) -> Path | None:
-    """``cameras.json`` beside the PLY, or two folders up (3DGS's ``OUT/point_cloud/iteration_N/point_cloud.ply``
-    with ``OUT/cameras.json``); for a symbolic link, around the link first, then around the file it points to."""
+def find_beside(ply_path: str | os.PathLike, name: str) -> Path | None:
+    """The file ``name`` beside the PLY, or two folders up (3DGS's ``OUT/point_cloud/iteration_N/point_cloud.ply``
+    with ``OUT/cameras.json`` and ``OUT/cfg_args``); for a symbolic link, around the link first, then around the file
+    it points to."""
     link = Path(os.path.abspath(ply_path)).parent
     real = Path(ply_path).resolve().parent
     for folder in (link, link.parent.parent, real, real.parent.parent):
-        c = folder / "cameras.json"
+        c = folder / name
         if c.is_file():
             return c
     return None
+
+
+def find_cameras_json(ply_path: str | os.PathLike) -> Path | None:
+    """``cameras.json`` found as ``find_beside`` finds files."""
+    return find_beside(ply_path, "cameras.json")
 
 
 def write_cameras_json(path: str | os.PathLike, cameras: list[Camera]) -> None:

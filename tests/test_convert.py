@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -330,7 +331,7 @@ def test_the_benchmark_converts_with_conversion_s_own_fit_settings_like_the_cli(
     from proxycodec.cli.convert import make_config
     from proxycodec.train import FitConfig
 
-    cli_cfg = make_config(300, None, 0, 0.0, 64, 400, "white", 100)
+    cli_cfg = make_config(300, None, 0, 0.0, 64, 400, (1.0, 1.0, 1.0), 100)
     bench = convert_config({"background": [1.0, 1.0, 1.0], "fit": {"iters": 300, "max_width": 100, "seed": 0}})
     assert bench == cli_cfg
     assert (bench.fit.lr_warmup, bench.fit.xi_full_share, bench.fit.lambda_rate) == (0.0, 0.0, 0.0)
@@ -339,3 +340,76 @@ def test_the_benchmark_converts_with_conversion_s_own_fit_settings_like_the_cli(
     old = convert_config({"fit": {"proxy_selection": "random", "predictor_context": 1, "lr_warmup": 0.05}})
     assert (old.fit.proxy_selection, old.fit.predictor_context, old.fit.lr_warmup, old.fit.iters) == ("random", 1, 0.05,
                                                                                                       4000)
+
+
+# ---------------------------------------------------------------------------------------------- background
+def _trainer_output(tmp_path, white: bool | None):
+    """A 3DGS trainer's output folder: OUT/cameras.json, OUT/cfg_args (``white`` None: none) and the PLY in
+    OUT/point_cloud/iteration_30000/; a half-transparent ball, so the background shows through it."""
+    out = tmp_path / ("white" if white else "black" if white is False else "none")
+    ply = out / "point_cloud" / "iteration_30000" / "point_cloud.ply"
+    ply.parent.mkdir(parents=True)
+    g = _ball(200)
+    write_inria_ply(ply, GaussianPly(g.means, g.sh, np.full(len(g.means), -1.0), g.scales, g.quats))
+    write_cameras_json(out / "cameras.json", [Camera.look_at((0.0, -2.0, 0.3), (0, 0, 0), fov_x_deg=50, width=24,
+                                                             height=18, name="v0")])
+    if white is not None:
+        (out / "cfg_args").write_text(f"Namespace(sh_degree=3, source_path='/data/x', model_path='{out}', "
+                                      f"white_background={white}, eval=True)")
+    return ply
+
+
+def test_a_3dgs_ply_renders_on_the_background_it_was_trained_on(tmp_path):
+    """Black unless the trainer's cfg_args says white_background=True (the reference trainer's, gsplat's and
+    nerfstudio's default); `render --background` overrides it, and the default render is the black one exactly."""
+    from PIL import Image
+
+    from proxycodec.explicit import ply_background
+
+    none, black, white = (_trainer_output(tmp_path, w) for w in (None, False, True))
+    assert ply_background(none)[0] == (0.0, 0.0, 0.0) and "default" in ply_background(none)[1]
+    assert ply_background(black)[0] == (0.0, 0.0, 0.0) and "cfg_args" in ply_background(black)[1]
+    assert ply_background(white)[0] == (1.0, 1.0, 1.0)
+    assert ExplicitModel.load(white).background == (1.0, 1.0, 1.0)
+    assert ExplicitModel.load(white, background=(0, 0, 0)).background == (0.0, 0.0, 0.0)
+
+    def render(ply, *extra):
+        d = tmp_path / f"r{len(list(tmp_path.glob('r*')))}"
+        r = CliRunner().invoke(cli, ["render", str(ply), "--res", "1", "-o", str(d), *extra])
+        assert r.exit_code == 0, r.output
+        return np.asarray(Image.open(next(d.glob("*.png"))), np.float64)
+
+    default, on_black, on_white = render(none), render(none, "--background", "black"), render(none, "--background",
+                                                                                               "white")
+    assert np.array_equal(default, on_black) and on_black[0, 0].sum() == 0
+    assert (on_white - on_black).mean() > 20  # the haze a black-trained PLY shows on white
+    assert np.array_equal(render(white), on_white)
+    grey = render(none, "--background", "0.5,0.5,0.5")
+    assert np.allclose(grey[0, 0], 128, atol=1)
+    for bad in ("2,0,0", "red", "0.1,0.2"):
+        r = CliRunner().invoke(cli, ["render", str(none), "--background", bad])
+        assert r.exit_code == 2 and "--background" in r.output and "Traceback" not in r.output
+    (white.parents[2] / "cfg_args").write_text("Namespace(white_background=")
+    r = CliRunner().invoke(cli, ["render", str(white)])
+    assert r.exit_code == 2 and "cfg_args" in r.output and r.output.count("\n") == 1, r.output
+
+
+def test_conversion_and_its_container_keep_the_sources_background(tmp_path):
+    from proxycodec import codec
+    from proxycodec.model import SceneModel
+
+    ply = _trainer_output(tmp_path, None)
+    log = []
+    r = convert(ply, tmp_path / "a.ply", _tiny_config(iters=4), log=log.append)
+    assert r.model.background == (0.0, 0.0, 0.0) and any(s.startswith("background: 0 0 0 (default") for s in log)
+    assert SceneModel.load(tmp_path / "a.ply").background == (0.0, 0.0, 0.0)
+    rep = codec.encode(tmp_path / "a.ply", tmp_path / "a.pxc", predictor_iters=5, entropy="zstd")
+    assert rep.meta["background"] == [0.0, 0.0, 0.0] and codec.decode(tmp_path / "a.pxc").background == (0, 0, 0)
+    white = _trainer_output(tmp_path, True)
+    assert convert(white, tmp_path / "w.ply", _tiny_config(iters=2), log=lambda s: None).model.background == \
+        (1.0, 1.0, 1.0)
+    given = replace(_tiny_config(iters=2), background=(0.2, 0.4, 0.6))
+    assert convert(white, tmp_path / "g.ply", given, log=lambda s: None).model.background == (0.2, 0.4, 0.6)
+    # an anchor scene keeps the background it was trained on: encode refuses to change it
+    res = CliRunner().invoke(cli, ["encode", str(tmp_path / "a.ply"), "--background", "white"])
+    assert res.exit_code == 2 and "--background applies to a 3DGS PLY" in res.output

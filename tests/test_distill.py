@@ -219,7 +219,23 @@ def test_distillation_with_the_rate_term_stores_its_learned_grids(pair, tmp_path
     assert codec.decode(cells.path).scene.offsets.shape == m.scene.offsets.shape
 
 
-def test_a_scene_without_a_stage2_predictor_is_distilled_by_default(tmp_path, monkeypatch):
+def _stored(path) -> tuple[dict, dict]:
+    """A container's arrays and its metadata without the record of how encode chose its path."""
+    c = codec.load(path)
+    return c.sections, {k: v for k, v in c.meta.items() if k != "encode_choice"}
+
+
+def _same_container(a, b) -> None:
+    (sa, ma), (sb, mb) = _stored(a), _stored(b)
+    assert sa.keys() == sb.keys() and all(np.array_equal(sa[k], sb[k]) for k in sa)
+    assert ma == mb
+
+
+def test_without_a_stage2_predictor_encode_measures_its_l_recon_encode_and_distils_only_below_the_threshold(
+        tmp_path, monkeypatch):
+    """encode's default path for a scene without a predictor of its own: the L_recon encode first, measured against
+    the source (views spread over the teacher's, same-resolution renders); below the threshold it distils, and the file is then the
+    one a forced distillation writes; at or above it the L_recon encode is the file (the one --no-distill writes)."""
     from proxycodec import distill as distill_mod
 
     calls = []
@@ -231,11 +247,28 @@ def test_a_scene_without_a_stage2_predictor_is_distilled_by_default(tmp_path, mo
 
     monkeypatch.setattr(distill_mod, "distill", spy)
     m = _model(120)
-    knobs = {k: v for k, v in QUICK.items() if k != "distill"}
-    codec.encode(m, tmp_path / "a.pxc", **{**knobs, "distill_iters": 2})
-    assert calls == [None]
-    codec.encode(m, tmp_path / "b.pxc", **{**knobs, "distill": False})
-    assert len(calls) == 1
+    knobs = {**{k: v for k, v in QUICK.items() if k != "distill"}, "distill_iters": 2}
+    below = codec.encode(m, tmp_path / "below.pxc", **knobs, distill_threshold=1000.0)
+    choice = below.meta["encode_choice"]
+    assert calls == [None] and choice["path"] == "distill" and not choice["forced"]
+    assert [r["xi"] for r in choice["per_resolution"]] == list(codec.EncodeConfig.choice_resolutions)
+    assert len(choice["views"]) == codec.EncodeConfig.choice_views and 20 < choice["measured"] < 100
+    assert choice["measured"] == pytest.approx(np.mean([r["psnr"] for r in choice["per_resolution"]]), rel=1e-12)
+    codec.encode(m, tmp_path / "forced.pxc", **knobs, distill=True)
+    _same_container(tmp_path / "below.pxc", tmp_path / "forced.pxc")
+    assert codec.load(tmp_path / "forced.pxc").meta["encode_choice"] == {"path": "distill", "forced": True}
+    # at the measured figure itself ("at or above" keeps it): no distillation, the --no-distill file
+    kept = codec.encode(m, tmp_path / "kept.pxc", **knobs, distill_threshold=choice["measured"])
+    assert len(calls) == 2 and kept.meta["encode_choice"]["path"] == "L_recon"  # 2: the forced one
+    assert kept.meta["encode_choice"]["measured"] == choice["measured"] and "distill" not in kept.meta
+    codec.encode(m, tmp_path / "plain.pxc", **knobs, distill=False)
+    assert len(calls) == 2
+    _same_container(tmp_path / "kept.pxc", tmp_path / "plain.pxc")
+    # the figure is what the decoded file renders against the source
+    again = codec.against_source(codec.decode(tmp_path / "kept.pxc"), m, codec.EncodeConfig(**knobs))
+    assert again["measured"] == pytest.approx(choice["measured"], rel=1e-9) and again["views"] == choice["views"]
+    with pytest.raises(ProxycodecError, match="threshold"):
+        codec.encode(m, tmp_path / "x.pxc", **knobs, distill_threshold=float("nan"))
 
 
 def test_bad_distillation_settings_are_user_errors(tmp_path):
@@ -339,7 +372,7 @@ def test_cli_encode_distils_and_reports(trained, tmp_path):
 
     m = trained
     ply, _ = m.save(tmp_path / "s.ply", extra_meta={"fit": {"config": m.meta["fit"]["config"]}})  # fitted at random xi
-    r = CliRunner().invoke(cli, ["encode", str(ply), "-o", str(tmp_path / "s.pxc"), "--distill-iters", "3",
+    r = CliRunner().invoke(cli, ["encode", str(ply), "-o", str(tmp_path / "s.pxc"), "--distill", "--distill-iters", "3",
                                  "--distill-views", "12", "--predictor-iters", "5",
                                  "--distill-full-share", "0.5", "--json"])
     assert r.exit_code == 0, r.output
@@ -351,9 +384,20 @@ def test_cli_encode_distils_and_reports(trained, tmp_path):
     s = CliRunner().invoke(cli, ["stats", str(tmp_path / "s.pxc")])
     assert s.exit_code == 0 and "distilled 3 iterations against the source's renders (whole targets)" in s.output, \
         s.output
-    r = CliRunner().invoke(cli, ["encode", str(ply), "-o", str(tmp_path / "f.pxc"), "--distill-iters", "1",
+    r = CliRunner().invoke(cli, ["encode", str(ply), "-o", str(tmp_path / "f.pxc"), "--distill", "--distill-iters", "1",
                                  "--distill-views", "12", "--predictor-iters", "5", "--distill-targets", "full",
                                  "--json"])
     assert r.exit_code == 0 and json.loads(r.stdout)["distill"]["targets"] == "full", r.output
     r = CliRunner().invoke(cli, ["encode", str(ply), "--images", str(tmp_path / "nope")])
     assert r.exit_code == 2 and "Traceback" not in r.output
+    # the default path: one line says what was measured, against which threshold, and what was chosen
+    r = CliRunner().invoke(cli, ["encode", str(ply), "-o", str(tmp_path / "c.pxc"), "--predictor-iters", "5",
+                                 "--distill-threshold", "-1"])
+    assert r.exit_code == 0, r.output
+    line = [x for x in r.stderr.splitlines() if x.startswith("encode path:")]
+    assert len(line) == 1 and "L_recon predictor kept" in line[0] and "threshold -1 dB" in line[0], r.stderr
+    assert "path L_recon chosen by measurement" in r.stdout
+    s = CliRunner().invoke(cli, ["stats", str(tmp_path / "c.pxc")])
+    assert "encode path L_recon chosen by measurement" in s.output and "threshold -1.0 dB" in s.output
+    r = CliRunner().invoke(cli, ["encode", str(ply), "-o", str(tmp_path / "n.pxc"), "--distill-threshold", "nan"])
+    assert r.exit_code == 2 and r.output.count("\n") == 1 and "threshold" in r.output, r.output
