@@ -38,7 +38,11 @@ def bench(scene, dataset, out_dir, quick, views, max_width, test_every, sweeps, 
     on SCENE (an anchor PLY + weights, e.g. from `proxycodec fit`) and evaluate every container on DATASET's test
     views: bytes, PSNR/SSIM over ten resolutions, encode/decode/render times, peak RSS per step. Writes
     results.json, bench.md and PNG plots (PSNR vs bytes with the Pareto front, PSNR vs time, render time vs
-    resolution); an interrupted run resumes where it stopped."""
+    resolution) in OUT; an interrupted run resumes where it stopped.
+
+    The default point is `proxycodec encode SCENE` as a user runs it (a scene with a stage-2 predictor: used as
+    fitted; without one: the measured choice between the L_recon predictor and distillation). Every other point
+    refits the predictor on L_recon alone, so that the knobs are compared at equal cost."""
     from pathlib import Path
 
     from ..bench import run_bench

@@ -216,10 +216,12 @@ def load_cameras(spec: str):
               type=click.Choice(["auto", "reference", "cpu", "cuda"]), help="Compositing backend.")
 @user_errors
 def decode(container, res, cameras, out_dir, views, no_render, ply, ply_res, ply_view, backend) -> None:
-    """Decode a container (leaves regenerated) and render it at any resolution; optionally export a 3DGS PLY.
+    """Decode CONTAINER (the leaves' features regenerated from their nearest proxies by its residual predictor)
+    and render its views at any resolution: PNGs in OUT (default CONTAINER_renders/viewNNN_resX.XXX.png), on the
+    background the scene was trained on; --ply also writes the decoded Gaussians as a standard INRIA 3DGS PLY.
 
-    Rendering on the CPU without --ply never imports torch (``proxycodec.lite``: numpy + the numba kernels, the
-    same results); --ply, --backend reference|cuda and containers it does not cover take the torch path."""
+    Rendering on the CPU without --ply never imports torch (numpy + the numba kernels, the same results); --ply,
+    --backend reference|cuda and containers that path does not cover take the torch path."""
     from ..camera import check_xi
 
     resolutions = parse_resolutions(res)
@@ -270,8 +272,11 @@ def _decode_lite(container):
 @click.option("--json", "as_json", is_flag=True, help="Everything as JSON (metadata included).")
 @user_errors
 def stats(file, as_json) -> None:
-    """Sizes and counts of a container, an anchor PLY, a Scaffold-GS output or an INRIA 3DGS PLY (the bytes of
-    each part, adding up to the file)."""
+    """What FILE holds and what each part costs in bytes (the parts add up to the file); writes nothing.
+
+    FILE: a container (anchors, proxies and leaves, quantisation, the path encode took and its measurement, the
+    distillation's held-out report, every section), an anchor PLY (+ weights), a Scaffold-GS output or an INRIA
+    3DGS PLY."""
     from .. import codec
     from ..distill import report_line
 

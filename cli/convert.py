@@ -53,7 +53,9 @@ def make_config(iters, time_budget, seed, voxel_size, views, view_size, backgrou
 def convert(ply, out, iters, time_budget, seed, voxel_size, views, view_size, background, max_width, resume,
             as_json) -> None:
     """Turn an INRIA 3DGS PLY (SH degree 0..3; the reference trainer's, splatfacto's, an app's export) into a
-    resolution-aware anchor scene, trained against the PLY's own renders: no images needed.
+    resolution-aware anchor scene, trained against the PLY's own renders: no images needed. Writes OUT (anchor PLY)
+    and OUT.weights.pxc (MLPs, proxies and their stage-2 predictor: `encode OUT` uses them as they are); OUT.ckpt.pxc
+    while training (--resume). The source renders on --background (default: the one it was trained on).
 
     Views: the PLY's cameras.json when it has one (beside it, or two folders up as 3DGS writes it), else automatic
     views around (objects) or inside (rooms) the scene. Progress lines show the run; `proxycodec encode OUT` then

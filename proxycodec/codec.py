@@ -59,7 +59,7 @@ class EncodeConfig:
     proxy_ratio: float = 0.3
     cell_size: float | None = None  # world units; None: a multiple of the voxel size giving ~cell_target anchors/cell
     cell_target: float = 10.0
-    # [D] "spread" (proxy.select_proxies) and context 4 by default, as fit's stage 2 since session 8: on lego's
+    # [D] "spread" (proxy.select_proxies) and context 4 by default, as fit's stage 2 (since 2026-11-23): on lego's
     # no-proxy scene (25 photos, 10%..100%) 25.87 dB against 23.57 for "random" (the paper's) and context 1 with the
     # L_recon-only predictor, +0.24 dB distilled (SPEC.md section 4); ~+11 KB of predictor weights
     proxy_selection: str = "spread"  # when not as fitted
@@ -105,8 +105,8 @@ class EncodeConfig:
     # True / False: always / never (never: the predictor is fitted on feature distance, L_recon, alone).
     distill: bool | None = None
     # [D] the choice's threshold, dB against the source rendered at the same resolution (mean over choice_views
-    # held-out views at choice_resolutions): between what L_recon reaches where distillation pays (lego's no-proxy
-    # fit) and where it does not (the built-in scene); the table is in SPEC.md section 4
+    # views spread over the teacher's, at choice_resolutions): above what distillation reaches on lego's no-proxy
+    # fit, below the built-in scene's L_recon encode (SPEC.md section 4; benchmarks/encode_choice.py)
     distill_threshold: float = 40.0
     choice_resolutions: tuple[float, ...] = (0.1, 0.3, 1.0)
     choice_views: int = 4

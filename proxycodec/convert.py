@@ -48,7 +48,7 @@ class ConvertConfig:
     # [D] measured on lego's PLY, 2x2 (SPEC.md section 11): fit's spread proxies and context-4 predictor (+0.30..0.37
     # dB against the source renders over random / context 1) and no learning-rate warm-up (+0.46..0.53 dB over 5%):
     # 32.38 dB against 31.55 for the settings used before. Resolutions drawn uniformly (no share at 100%) and no rate
-    # term (fit's session-9 default; not measured here).
+    # term (fit's default of 2026-11-23; not measured here).
     fit: FitConfig = field(default_factory=lambda: FitConfig(iters=4000, max_width=800, lr_warmup=0.0,
                                                              xi_full_share=0.0, lambda_rate=0.0))
     voxel_size: float = 0.0  # <= 0: automatic (choose_voxel)

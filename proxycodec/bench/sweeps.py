@@ -94,7 +94,7 @@ def encode_sweep_plan(quick: bool, sweeps: Sequence[str] | None = None) -> list[
             continue
         for v in values:
             if name == "bits":  # [D] uniform grids of these depths: on a rate-trained scene encode otherwise quantises
-                # on the learned grids and the bits change nothing (bonsai, session 13: five points, one file)
+                # on the learned grids and the bits change nothing (bonsai, 2026-11-24: five points, one file)
                 knobs = {"offset_bits": v[0], "feature_bits": v[1], "scaling_bits": v[2], "learned_steps": False}
                 label = f"offsets {v[0]} / features {v[1]} / scalings {v[2]}, uniform grids"
             else:
