@@ -17,7 +17,7 @@ repeats): the training seconds per iteration of the run, split into the student'
 fetch is timed: the teacher renders inside it); the steady state (the student plus the targets after the first
 epoch, when "full" has every 100% render cached) and its ratio to "full" measured in the same run; the peak RSS.
 The quality of the encodes is not measured here (it needs the whole encode and the test photos: SPEC.md section 4,
-"Session 16", has the figures and the commands).
+2026-11-25, has the figures and the commands).
 
 Outputs in ``--out`` (default ``benchmarks/results/distill_targets``): ``distill_targets.json`` (every figure,
 machine, versions, seed), ``distill_targets.md`` and ``distill_targets.png``.

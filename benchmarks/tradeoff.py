@@ -27,7 +27,7 @@ each step finishes, a re-run resumes):
    figure; a second seed of the default measures the run-to-run noise.
 
 Wall time on the 2-core machine: the steps of the last full run took 11,024 s (fits 9,896 s; the ablations, fits and evaluations, 4,726 s of
-them), before the RD sweep added 4,500 s of fits: ~4.5 h from scratch, more than one 3-hour working session.
+them), before the RD sweep added 4,500 s of fits: ~4.5 h from scratch, more than a 3-hour run can hold.
 ``--no-ablations`` or ``--scenes lego`` shorten it; a re-run without ``--fresh`` resumes from the finished steps.
 
 Outputs in ``--out``: ``results.json`` (machine, versions, seed, load averages, every step and point), ``tradeoff.md``
