@@ -11,6 +11,7 @@ import click
 from .. import __version__
 from ..threads import ENV as THREADS_ENV
 from ..threads import set_threads
+from .batch import batch
 from .bench import bench
 from .codec import decode, encode, stats
 from .commands import demo, render, sample
@@ -28,7 +29,7 @@ def cli(threads: int | None) -> None:
     set_threads(threads)
 
 
-for _command in (sample, render, demo, fit, convert, encode, decode, stats, eval_cmd, bench):
+for _command in (sample, render, demo, fit, convert, encode, decode, stats, eval_cmd, bench, batch):
     cli.add_command(_command)
 
 
