@@ -1,8 +1,9 @@
-"""What accuracy costs in time and bytes (issue #7): one command for every table and plot.
+"""What accuracy costs in time and bytes: one command for every table and plot.
 
     python benchmarks/tradeoff.py                       # full: lego (400 px) + bonsai (800 px), ~4.5 h on 2 cores
     python benchmarks/tradeoff.py --quick               # CI smoke: lego at 160 px, tiny budgets, <= 20 min
     python benchmarks/tradeoff.py --scenes lego --out benchmarks/results/tradeoff --budget-scale 0.5
+    python benchmarks/tradeoff.py --ray [ADDRESS]       # the independent steps as Ray tasks (a cluster's width)
 
 Per scene, in one run, each step in its own subprocess (``proxycodec.bench``: per-step peak RSS, results written as
 each step finishes, a re-run resumes):
@@ -128,11 +129,16 @@ def main(argv=None) -> int:
                     f"{ABLATION['iters']}; quick: {QUICK_ABLATION['iters']}]")
     ap.add_argument("--no-spz", action="store_true", help="skip the SPZ conversion (recorded as skipped)")
     ap.add_argument("--fresh", action="store_true", help="ignore the results of an earlier run in --out")
+    ap.add_argument("--ray", nargs="?", const="local", default=None, metavar="ADDRESS",
+                    help="run the independent steps as Ray tasks, in waves (same step cache): a local Ray started "
+                         "here, or ADDRESS (auto, ray://host:port)")
+    ap.add_argument("--ray-cpus-per-step", type=float, default=None,
+                    help="CPUs each step reserves on Ray [default: a whole node's, so timed steps never share cores]")
     args = ap.parse_args(argv)
 
     sys.path.insert(0, str(REPO))
     from proxycodec import bench
-    from proxycodec.bench import EvalSpec, Runner, encode_point, eval_step, make_point, run_encode_sweeps
+    from proxycodec.bench import Runner
     from proxycodec.threads import set_threads
 
     set_threads()  # $PROXYCODEC_THREADS, else the usable cores; the step workers inherit the count
@@ -175,10 +181,36 @@ def main(argv=None) -> int:
             "ablation_fits": {n: {"reference width": ab_spec["max_width"], "iterations": ab_spec["iters"]}
                               for n in ab_scenes},
             "fit_seconds_planned": est}
-    runner = Runner(out, meta, fresh=args.fresh)
+    ray = None
+    if args.ray:
+        try:
+            from proxycodec.bench.runner import RaySteps
+        except ImportError:  # pragma: no cover
+            ap.error("--ray needs Ray: pip install -e \".[ray]\"")
+        try:
+            ray = RaySteps(None if args.ray == "local" else args.ray, args.ray_cpus_per_step)
+        except ImportError:
+            ap.error("--ray needs Ray: pip install -e \".[ray]\"")
+        meta["ray"] = ray.info
+    runner = Runner(out, meta, fresh=args.fresh, ray=ray)
     runner.log(f"trade-off benchmark -> {out}: scenes {names}, ~{est / 60:.0f} min of training planned "
-               f"(plus encodes and evaluations)")
+               f"(plus encodes and evaluations)" + (f"; on Ray: {ray.info}" if ray else ""))
     t0 = time.time()
+    points, ablation_rows = runner.run_in_waves(lambda: map_pass(runner, args, specs, ablations, ab_scenes,
+                                                                  noise_seeds, ab_spec, ab_fit_s))
+    md_ab = ablation_markdown(ablation_rows, meta)
+    paths = bench.write_report(runner, "Trade-off benchmark" + (" — quick" if args.quick else ""),
+                               points, extra_sections=md_ab, extra_json={"ablations": ablation_rows})
+    print(Path(paths["markdown"]).read_text())
+    print(f"done in {time.time() - t0:.0f} s; wrote " + ", ".join(str(p) for p in paths.values()))
+    return 0
+
+
+def map_pass(runner, args, specs, ablations, ab_scenes, noise_seeds, ab_spec, ab_fit_s) -> tuple[list, list]:
+    """One pass over the map: every step in order (each run, or taken from the cache); -> (points, ablation rows).
+    With Ray, ``Runner.run_in_waves`` repeats it, running the steps each pass asks for in parallel."""
+    from proxycodec.bench import EvalSpec, encode_point, eval_step, make_point, run_encode_sweeps
+
     points: list[dict] = []
     ablation_rows: list[dict] = []
     for n, sp in specs.items():
@@ -282,13 +314,9 @@ def main(argv=None) -> int:
                 if noise and d is not None and not r.get("noise_row") and r is not rows[0]:
                     r["within_noise"] = abs(d) <= max(noise)
             ablation_rows += rows
-        runner.save({"points": points, "ablations": ablation_rows})  # partial results after each scene
-    md_ab = ablation_markdown(ablation_rows, meta)
-    paths = bench.write_report(runner, "Trade-off benchmark (issue #7)" + (" — quick" if args.quick else ""),
-                               points, extra_sections=md_ab, extra_json={"ablations": ablation_rows})
-    print(Path(paths["markdown"]).read_text())
-    print(f"done in {time.time() - t0:.0f} s; wrote " + ", ".join(str(p) for p in paths.values()))
-    return 0
+        if not runner.collecting:
+            runner.save({"points": points, "ablations": ablation_rows})  # partial results after each scene
+    return points, ablation_rows
 
 
 def _res(rec):

@@ -74,9 +74,9 @@ def batch(command, args, out_dir, dataset, use_ray, ray_address, cpus_per_task, 
 
     from ..batch import plan, run_batch, summary_markdown, write_summary
     from ..errors import ProxycodecError
-    from .main import cli
 
-    inputs, options = split_args(cli.commands[command], list(args))
+    root = click.get_current_context().find_root()
+    inputs, options = split_args(root.command.get_command(root, command), list(args))
     if not inputs:
         raise ProxycodecError(f"batch {command}: no inputs given")
     threads = None if cpus_per_task is None else max(1, int(cpus_per_task))

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import click
 
-from .common import background_option, config_option, parse_resolutions, render_views, user_errors
+from .common import background_option, parse_resolutions, render_views, user_errors
 
 
 @click.command()

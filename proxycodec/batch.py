@@ -1,6 +1,6 @@
 """Many scenes through one command: ``proxycodec batch COMMAND INPUTS... --out DIR [COMMAND'S OPTIONS]``.
 
-One task per input. A task is the command itself, run as ``python -m proxycodec COMMAND INPUT -o DIR/NAME ...`` in a
+One task per input. A task is the command itself, run as ``python -m proxycodec.cli COMMAND INPUT -o DIR/NAME ...`` in a
 child process (its log in ``DIR/logs/NAME.log``, its peak RSS its own), so a task's output is byte-identical to the
 command run alone with the same options and threads. Tasks run on Ray when it is installed (a local Ray started in
 this process with the machine's cores, or an existing cluster: ``ray_address``), else one after another here.
@@ -42,7 +42,7 @@ class Task:
     command: str
     input: str
     output: str
-    argv: tuple[str, ...]  # the whole command line after ``python -m proxycodec``
+    argv: tuple[str, ...]  # the whole command line after ``python -m proxycodec.cli``
     key: str  # command + options + input bytes (+ sidecar) + proxycodec version (threads are not part of it)
     log: str
     threads: int | None = None  # PROXYCODEC_THREADS and NUMBA_NUM_THREADS of the child; None: its own default
@@ -147,7 +147,7 @@ def run_task(task: dict, retries: int = 0) -> dict:
     if t.threads:
         env["PROXYCODEC_THREADS"] = str(t.threads)
         env["NUMBA_NUM_THREADS"] = str(t.threads)
-    cmd = [sys.executable, "-m", "proxycodec", *t.argv]
+    cmd = [sys.executable, "-m", "proxycodec.cli", *t.argv]
     attempts = 0
     while True:
         attempts += 1

@@ -35,7 +35,7 @@ def scenes(tmp_path_factory):
 
 def _alone(scene: str, out: str) -> bytes:
     """The command run by hand, as the batch's tasks run it (one thread)."""
-    r = subprocess.run([sys.executable, "-m", "proxycodec", "--threads", "1", "encode", scene, "-o", out, *OPTIONS],
+    r = subprocess.run([sys.executable, "-m", "proxycodec.cli", "--threads", "1", "encode", scene, "-o", out, *OPTIONS],
                        capture_output=True, text=True, env={**__import__("os").environ, "NUMBA_NUM_THREADS": "1"})
     assert r.returncode == 0, r.stderr
     with open(out, "rb") as fh:

@@ -383,3 +383,56 @@ def test_bench_subprocess_steps_and_resume(tiny, tmp_path):
               log=logs.append)
     assert len(logs) == n_logged  # nothing ran again
     assert len(json.loads((out / "results.json").read_text())["runs"]) == 2
+
+
+def _steps_without_timing(path) -> dict:
+    """Each step's record in ``results.json`` without what depends on when and where it ran (times, memory, load)."""
+    def strip(v):
+        if isinstance(v, dict):
+            return {k: strip(x) for k, x in v.items() if not (
+                k in ("ms", "host", "ray", "shared_host_with", "rss_scope", "finished") or
+                any(w in k for w in ("second", "time", "rss", "load", "_at", "_ms")))}
+        if isinstance(v, list):
+            return [strip(x) for x in v]
+        return v
+
+    return {sid: strip(rec) for sid, rec in json.loads(path.read_text())["steps"].items()}
+
+
+def test_a_map_run_in_waves_on_ray_records_what_the_runner_records(tiny, tmp_path):
+    """``tradeoff.py --ray``: the map's passes collect the steps, a wave runs those whose inputs exist as Ray tasks
+    (an evaluation waits for its container), into the same cache; the results equal the runner's, step by step."""
+    ray = pytest.importorskip("ray", reason="Ray is not installed (pip install -e \".[ray]\")")
+    from proxycodec.bench import EvalSpec, Runner, encode_point
+    from proxycodec.bench.runner import RaySteps
+
+    data, ply = tiny
+    ev = EvalSpec(str(data), None, 1, resolutions=(0.5, 1.0))
+
+    def a_pass(runner):
+        evaluated = {}  # zstd levels 3 and 19 store the same arrays: the second point reuses the first's quality
+        return [encode_point(runner, "t", f"zstd {z}", ply, {"predictor_iters": 20, "zstd_level": z,
+                                                              "distill": False}, ev, evaluated=evaluated)
+                for z in (3, 19)]
+
+    seq = Runner(tmp_path / "seq", {}, log=lambda s: None)
+    points_seq = seq.run_in_waves(lambda: a_pass(seq))
+    try:
+        ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+        steps = RaySteps(cpus_per_step=1)
+        assert steps.info["nodes"] == 1 and steps.cpus_per_step == 1
+        logs = []
+        par = Runner(tmp_path / "par", {}, log=logs.append, ray=steps)
+        points_par = par.run_in_waves(lambda: a_pass(par))
+    finally:
+        ray.shutdown()
+    assert sum("... (Ray)" in s for s in logs) >= 4  # two encodes, then their evaluations, then a decode timing
+    a, b = _steps_without_timing(tmp_path / "seq" / "results.json"), _steps_without_timing(tmp_path / "par" /
+                                                                                         "results.json")
+    for sid in a:  # the same steps, with the same results (paths aside: each run has its folder)
+        assert json.dumps(a[sid]).replace("/seq/", "/par/") == json.dumps(b[sid]), sid
+    assert set(b) - set(a) <= {"eval:t/zstd 19"}  # a wave may evaluate both before it knows they are identical
+    assert [p["psnr_avg"] for p in points_seq] == [p["psnr_avg"] for p in points_par]
+    assert [p["bytes"] for p in points_seq] == [p["bytes"] for p in points_par]
+    recs = json.loads((tmp_path / "par" / "results.json").read_text())["steps"].values()
+    assert all(r["ray"]["cpus_per_step"] == 1 and "shared_host_with" in r for r in recs)

@@ -74,7 +74,7 @@ class Runner:
     """
 
     def __init__(self, out_dir: str | os.PathLike, meta: dict, *, isolate: bool = True, fresh: bool = False,
-                 log: Callable[[str], None] | None = None):
+                 log: Callable[[str], None] | None = None, ray: "RaySteps | None" = None):
         self.out = Path(out_dir)
         self.out.mkdir(parents=True, exist_ok=True)
         self.work = self.out / "work"
@@ -83,6 +83,11 @@ class Runner:
         self.logs.mkdir(exist_ok=True)
         self.path = self.out / RESULTS
         self.isolate = isolate
+        # with Ray, ``step`` only collects the steps a pass asks for (``run_in_waves`` runs them as Ray tasks)
+        self.ray = ray
+        self.collecting = False
+        self.pending: dict[str, tuple] = {}
+        self.attempted: set[str] = set()
         self.log = log or (lambda s: print(s, file=sys.stderr, flush=True))
         self.state: dict[str, Any] = {"version": RESULTS_VERSION, "steps": {}}
         if self.path.exists() and not fresh:
@@ -114,6 +119,11 @@ class Runner:
         if (rec and rec.get("kind") == kind and rec.get("args") == args and rec.get("status") in ("ok", "skipped")
                 and all(Path(o).exists() for o in outputs)):
             return rec
+        if self.collecting:
+            if sid in self.attempted:  # ran (and failed) in an earlier wave of this run: as the runner reports it
+                return rec
+            self.pending[sid] = (kind, args, [str(o) for o in outputs], timeout, self._inputs_ready(args))
+            return {"status": "pending", "result": {}}
         self.log(f"[{time.strftime('%H:%M:%S')}] {sid} ...")
         t0 = time.perf_counter()
         if self.isolate:
@@ -134,25 +144,118 @@ class Runner:
         return rec
 
     def _spawn(self, sid: str, kind: str, args: dict, timeout: float) -> dict:
-        logf = self.logs / f"{safe_name(sid)}.log"
-        cmd = [sys.executable, "-m", "proxycodec.bench", "--worker", kind, json.dumps(args)]
-        with open(logf, "w") as err:
+        return spawn_step(str(self.logs / f"{safe_name(sid)}.log"), kind, args, timeout)
+
+    def _inputs_ready(self, args: dict) -> bool:
+        """Whether the files a step reads exist: every argument that names a path in this run's folder, except
+        the step's outputs (``out``, ``back``), must (a step reading another's output waits for a later wave)."""
+        root = str(self.out.resolve())
+
+        def paths(v):
+            if isinstance(v, dict):
+                for k, x in v.items():
+                    if k not in ("out", "back"):
+                        yield from paths(x)
+            elif isinstance(v, list):
+                for x in v:
+                    yield from paths(x)
+            elif isinstance(v, str) and os.path.isabs(v) or isinstance(v, str) and os.sep in v:
+                yield v
+
+        return all(Path(v).exists() for v in paths(args) if str(Path(v).resolve()).startswith(root))
+
+    def run_in_waves(self, plan_pass: Callable[[], Any]) -> Any:
+        """Run a benchmark whose steps ``plan_pass`` asks for, as Ray tasks (``self.ray``): each pass collects the
+        steps not done yet; those whose input files exist run at once, in parallel, and are recorded as
+        ``step`` records them (the same cache); passes repeat until one asks for nothing new; then a last pass
+        runs with every step cached and returns ``plan_pass``'s result. Without Ray: one ordinary pass."""
+        if self.ray is None:
+            return plan_pass()
+        while True:
+            self.collecting, self.pending = True, {}
             try:
-                r = subprocess.run(cmd, stdout=subprocess.PIPE, stderr=err, text=True, timeout=timeout, check=False)
-            except subprocess.TimeoutExpired:
-                return {"status": "error", "error": f"timeout after {timeout:.0f} s (log: {logf})"}
-        if r.returncode != 0:
-            tail = logf.read_text(errors="replace").strip().splitlines()[-1:] or ["?"]
-            return {"status": "error", "error": f"exit {r.returncode}: {tail[0][-300:]} (log: {logf})"}
-        try:
-            return {"status": "ok", "result": json.loads(r.stdout.strip().splitlines()[-1]),
-                    "rss_scope": "own process"}
-        except (ValueError, IndexError):
-            return {"status": "error", "error": f"no result from the worker (log: {logf})"}
+                plan_pass()
+            finally:
+                self.collecting = False
+            ready = {sid: p for sid, p in self.pending.items() if p[4]}
+            if not self.pending:
+                break
+            if not ready:
+                raise RuntimeError("steps wait for files no step makes: " + ", ".join(sorted(self.pending)))
+            for sid, rec in self.ray.run(self, ready).items():
+                self.attempted.add(sid)
+                self.state["steps"][sid] = rec
+                self.log(f"[{time.strftime('%H:%M:%S')}] {sid}: {rec['status']} in {rec['seconds']:.1f} s on "
+                         f"{rec.get('host')} {rec.get('error') or ''}".rstrip())
+            self.save()
+        return plan_pass()
 
     def finish(self) -> None:
         self.state["runs"][-1].update(loadavg_end=load_avg(), wall_seconds=time.time() - self.t0)
         self.save()
+
+
+def spawn_step(logf: str, kind: str, args: dict, timeout: float) -> dict:
+    """One step in a fresh ``python -m proxycodec.bench --worker`` process (its stderr in ``logf``): its record."""
+    cmd = [sys.executable, "-m", "proxycodec.bench", "--worker", kind, json.dumps(args)]
+    with open(logf, "w") as err:
+        try:
+            r = subprocess.run(cmd, stdout=subprocess.PIPE, stderr=err, text=True, timeout=timeout, check=False)
+        except subprocess.TimeoutExpired:
+            return {"status": "error", "error": f"timeout after {timeout:.0f} s (log: {logf})"}
+    if r.returncode != 0:
+        tail = Path(logf).read_text(errors="replace").strip().splitlines()[-1:] or ["?"]
+        return {"status": "error", "error": f"exit {r.returncode}: {tail[0][-300:]} (log: {logf})"}
+    try:
+        return {"status": "ok", "result": json.loads(r.stdout.strip().splitlines()[-1]), "rss_scope": "own process"}
+    except (ValueError, IndexError):
+        return {"status": "error", "error": f"no result from the worker (log: {logf})"}
+
+
+def _ray_step(logf: str, sid: str, kind: str, args: dict, timeout: float) -> dict:
+    """A Ray task: ``spawn_step`` with where and when it ran."""
+    t0, start = time.perf_counter(), time.time()
+    rec = spawn_step(logf, kind, args, timeout)
+    rec.update(kind=kind, args=args, seconds=time.perf_counter() - t0, started_at=start, ended_at=time.time(),
+               host=os.uname().nodename, finished=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()))
+    if rec["status"] == "ok" and "skipped" in rec.get("result", {}):
+        rec["status"] = "skipped"
+    return rec
+
+
+class RaySteps:
+    """Where ``Runner.run_in_waves`` runs its steps: a Ray cluster (``address``; None: a local Ray started here with
+    this machine's cores), each step reserving ``cpus_per_step`` CPUs (default: a whole node's, so that timed steps
+    never share a machine's cores; fewer run several steps on one node, and each record then names the steps that
+    overlapped it on its host: ``shared_host_with``)."""
+
+    def __init__(self, address: str | None = None, cpus_per_step: float | None = None):
+        import ray  # noqa: PLC0415
+
+        self.ray = ray
+        if not ray.is_initialized():
+            if address:
+                ray.init(address=address, log_to_driver=False)
+            else:
+                ray.init(num_cpus=os.cpu_count(), include_dashboard=False, log_to_driver=False)
+        per_node = [n["Resources"].get("CPU", 0) for n in ray.nodes() if n.get("Alive")]
+        self.cpus_per_step = float(cpus_per_step or max(per_node or [1.0]))
+        self.info = {"address": address or "local", "nodes": len(per_node), "cpus_per_node": per_node,
+                     "cpus_per_step": self.cpus_per_step}
+
+    def run(self, runner: "Runner", steps: dict[str, tuple]) -> dict[str, dict]:
+        task = self.ray.remote(num_cpus=self.cpus_per_step)(_ray_step)
+        refs = {sid: task.remote(str(runner.logs / f"{safe_name(sid)}.log"), sid, kind, args, timeout)
+                for sid, (kind, args, _, timeout, _) in steps.items()}
+        for sid in refs:
+            runner.log(f"[{time.strftime('%H:%M:%S')}] {sid} ... (Ray)")
+        out = {sid: self.ray.get(ref) for sid, ref in refs.items()}
+        for sid, rec in out.items():
+            rec["ray"] = dict(self.info)
+            rec["shared_host_with"] = sorted(
+                o for o, r in out.items() if o != sid and r.get("host") == rec.get("host")
+                and r["started_at"] < rec["ended_at"] and rec["started_at"] < r["ended_at"])
+        return out
 
 
 def _json_default(o):

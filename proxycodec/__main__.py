@@ -1,5 +1,0 @@
-"""``python -m proxycodec``: the command line (``proxycodec.cli.main``)."""
-
-from .cli.main import main
-
-main()
