@@ -113,7 +113,8 @@ def main(argv=None) -> int:
             "views": cfg.choice_views, "machine": machine_info(), "versions": versions(), "peak_rss_mb": rss}
     res = cfg.choice_resolutions
     lines = [f"# encode's choice of path (threshold {threshold:g} dB)", "",
-             f"PSNR against the source rendered at the same resolution, mean of {cfg.choice_views} held-out views, "
+             f"PSNR against the source rendered at the same resolution, mean of {cfg.choice_views} views spread over "
+             f"the teacher's, "
              f"seed {args.seed}; {meta['machine'].get('cpu_model', '?')}, {meta['machine'].get('cpu_count')} cores; "
              f"peak RSS {rss:.0f} MB.", "",
              "| scene | anchors | L_recon: " + " / ".join(f"{x:.0%}" for x in res) + " | L_recon mean | encode s "
