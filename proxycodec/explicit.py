@@ -490,7 +490,7 @@ class ExplicitModel:
     """An INRIA 3DGS PLY rendered as plain 3DGS (SH colours, no gate): the eval counterpart of ``SceneModel``."""
 
     ply: GaussianPly
-    background: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    background: tuple[float, float, float] = PLY_BACKGROUND
     meta: dict = field(default_factory=dict)
     cameras: list | None = None
 
