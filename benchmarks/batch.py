@@ -56,30 +56,32 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     if str(REPO) not in sys.path:
         sys.path.insert(0, str(REPO))
-    from proxycodec.batch import plan, run_batch, summary_markdown
+    from proxycodec.batch import local_ray_on_loopback, plan, run_batch, summary_markdown
     from proxycodec.bench import machine_info, versions
     from proxycodec.fileio import atomic_write
 
     out = Path(args.out) if args.out else REPO / "benchmarks" / "results" / "batch"
     inputs = make_inputs(out / "inputs", args.anchor_scene)
     options = shlex.split(args.options)
+    local_ray_on_loopback()  # a local Ray and a two-node cluster on this machine: on 127.0.0.1
     import ray
 
     runs = {}
 
-    def one(way: str, **kw) -> None:
+    def one(way: str, threads: int | None = 1, **kw) -> None:
         folder = out / way
         if folder.exists():
             import shutil
 
             shutil.rmtree(folder)
         t0 = time.perf_counter()
-        records, how = run_batch(plan("encode", inputs, folder, options, threads=1), cpus_per_task=1,
+        records, how = run_batch(plan("encode", inputs, folder, options, threads=threads), cpus_per_task=1,
                                  say=lambda s: print(f"{way}: {s}", file=sys.stderr, flush=True), **kw)
         runs[way] = {"wall_seconds": time.perf_counter() - t0, "how": how, "records": records,
                      "markdown": summary_markdown(records, how)}
         print(runs[way]["markdown"], flush=True)
 
+    one("one_by_one_all_cores", threads=None, use_ray=False)  # each command with its own default threads
     one("one_by_one", use_ray=False)
     one("local_ray", use_ray=True)  # a local Ray started in this process with the machine's cores
     from ray.cluster_utils import Cluster
@@ -95,18 +97,19 @@ def main(argv=None) -> int:
     same = {}
     for i, name in enumerate(r["name"] for r in runs["one_by_one"]["records"]):
         blobs = []
-        for way in runs:
+        for way in ("one_by_one", "local_ray", "two_node_cluster"):  # one thread per task in each
             rec = runs[way]["records"][i]
             blobs.append(Path(rec["output"]).read_bytes() if rec["status"] == "ok" else None)
         same[name] = all(b is not None and b == blobs[0] for b in blobs)
     lines = [f"# `proxycodec batch encode`, three ways ({machine_info().get('cpu_model', '?')}, "
-             f"{machine_info().get('cpu_count')} cores)", "", f"Options: `{args.options}`; one thread per task.", "",
+             f"{machine_info().get('cpu_count')} cores)", "", f"Options: `{args.options}`; one thread per task, except one_by_one_all_cores (each command's own "
+             f"default: the machine's cores).", "",
              "| way | wall s | tasks ok | engine |", "|---|---:|---:|---|"]
     for way, r in runs.items():
         lines.append(f"| {way} | {r['wall_seconds']:.1f} | {sum(x['status'] == 'ok' for x in r['records'])}/"
                      f"{len(r['records'])} | {r['how']['engine']}"
                      + (f", {r['how'].get('nodes')} node(s)" if r['how']['engine'] == 'ray' else "") + " |")
-    lines += ["", "Containers identical in all three ways: " + ", ".join(f"{k} {'yes' if v else 'NO'}"
+    lines += ["", "Containers identical in the three one-thread ways: " + ", ".join(f"{k} {'yes' if v else 'NO'}"
                                                                         for k, v in same.items()), ""]
     for way, r in runs.items():
         lines += [f"## {way}", "", r["markdown"]]

@@ -208,7 +208,7 @@ def _psnr(command: str, out: Path, stdout: str) -> dict | None:
         choice = rep.get("encode_choice") or {}
         if choice.get("measured") is not None:
             return {"psnr": choice["measured"], "against": "the source (encode's choice measurement)"}
-        return None
+        rep = rep.get("convert") or {}  # a 3DGS PLY: its conversion's report
     conv = (rep.get("report") or {}).get("converted") or {}
     return None if conv.get("psnr") is None else {"psnr": conv["psnr"], "against": "the source's renders"}
 
@@ -244,6 +244,8 @@ def run_batch(tasks: list[Task], *, use_ray: bool | None = None, ray_address: st
     (say so otherwise); True: Ray or a user error; False: one after another here."""
     ray = None
     if use_ray is not False:
+        if not ray_address:
+            local_ray_on_loopback()
         try:
             import ray  # noqa: PLC0415
         except ImportError:
@@ -301,6 +303,16 @@ def run_batch(tasks: list[Task], *, use_ray: bool | None = None, ray_address: st
                 ray.shutdown()
     how["wall_seconds"] = time.perf_counter() - t0
     return [records[t.name] for t in tasks], how
+
+
+def local_ray_on_loopback() -> None:
+    """A Ray started here for this machine alone listens on 127.0.0.1, not on the machine's network address: Ray
+    picks its node address once, when it is imported, from ``RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER`` (off: the loopback
+    address, as on macOS). A Ray already imported, or that variable already set, is left as it is."""
+    import sys  # noqa: PLC0415
+
+    if "ray" not in sys.modules:
+        os.environ.setdefault("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")
 
 
 def summary_markdown(records: list[dict], how: dict) -> str:

@@ -222,7 +222,7 @@ class EncodeReport:
                 "proxies": self.proxies, "leaves": self.leaves, "cell_size": self.cell_size,
                 "source_bytes": self.source_bytes, "ratio": self.ratio, "seconds": self.seconds,
                 "sections": self.sections, "distill": self.meta.get("distill"),
-                "encode_choice": self.meta.get("encode_choice"),
+                "encode_choice": self.meta.get("encode_choice"), "convert": self.meta.get("convert"),
                 "predictor": None if self.training is None else {
                     "baseline_loss": self.training.baseline_loss, "final_loss": self.training.final_loss,
                     "iters": self.training.iters}}
@@ -324,7 +324,8 @@ def encode(
         built = _build(model, fitted, cfg, predictor, say)
     cfg, meta, sections, decoded = built.cfg, built.meta, built.sections, built.decoded
     meta["source"] = {"bytes": source_bytes, "name": os.path.basename(source_name)}
-    meta["encode_choice"] = _jsonable(choice)
+    # the choice as measured, without its seconds: same input, same bytes (the time is in the report's seconds)
+    meta["encode_choice"] = _jsonable({k: v for k, v in choice.items() if k != "seconds"})
     if distilled is not None:
         meta["distill"]["held_out"] = _held_out(decoded, model, distilled, cfg, say)
     for k, v in (extra_meta or {}).items():  # the caller's word wins (convert: the source is the 3DGS PLY)

@@ -7,9 +7,14 @@ reason when the folder (or the scene) is absent.
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
+
+# The Ray tests start Ray on this machine alone: on the loopback address, never on the machine's network address
+# (Ray reads this when it is imported; proxycodec.batch.local_ray_on_loopback does the same for a local batch).
+os.environ.setdefault("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO_ROOT.parent / "shared" / "data"

@@ -264,6 +264,10 @@ def test_without_a_stage2_predictor_encode_measures_its_l_recon_encode_and_disti
     codec.encode(m, tmp_path / "plain.pxc", **knobs, distill=False)
     assert len(calls) == 2
     _same_container(tmp_path / "kept.pxc", tmp_path / "plain.pxc")
+    # same input, same bytes: the record of the choice holds no time
+    codec.encode(m, tmp_path / "kept2.pxc", **knobs, distill_threshold=choice["measured"])
+    assert (tmp_path / "kept.pxc").read_bytes() == (tmp_path / "kept2.pxc").read_bytes()
+    assert "seconds" not in kept.meta["encode_choice"] and kept.seconds["choice"] > 0
     # the figure is what the decoded file renders against the source
     again = codec.against_source(codec.decode(tmp_path / "kept.pxc"), m, codec.EncodeConfig(**knobs))
     assert again["measured"] == pytest.approx(choice["measured"], rel=1e-9) and again["views"] == choice["views"]

@@ -230,6 +230,10 @@ class RaySteps:
     overlapped it on its host: ``shared_host_with``)."""
 
     def __init__(self, address: str | None = None, cpus_per_step: float | None = None):
+        if not address:
+            from ..batch import local_ray_on_loopback  # noqa: PLC0415
+
+            local_ray_on_loopback()
         import ray  # noqa: PLC0415
 
         self.ray = ray
