@@ -439,6 +439,7 @@ def convert_and_encode(ply_path: str | os.PathLike, out: str | os.PathLike, conf
         src = {"name": Path(ply_path).name, "bytes": Path(ply_path).stat().st_size, "kind": "inria-3dgs"}
         info = {**conv.to_json(), "source": src, "kept": None if tmp is not None else str(keep)}
         info.pop("path")
+        info.pop("seconds")  # same input, same bytes: the container holds no time (the result keeps it)
         # the container's source is the 3DGS PLY (stats' ratio is against it), not the intermediate anchor scene
         report = encode(keep, out, progress=log, extra_meta={"convert": info, "source": src}, **encode_knobs)
     finally:

@@ -172,6 +172,18 @@ def test_convert_is_deterministic(tmp_path):
     assert (tmp_path / "a.ply").read_bytes() == (tmp_path / "b.ply").read_bytes()
 
 
+def test_encode_of_a_3dgs_ply_writes_the_same_bytes_twice(tmp_path):
+    from proxycodec.convert import convert_and_encode
+
+    src = tmp_path / "splats.ply"
+    write_inria_ply(src, _ball(200))
+    knobs = dict(entropy="zstd", zstd_level=3)
+    _, a = convert_and_encode(src, tmp_path / "a.pxc", _tiny_config(iters=6), log=lambda s: None, **knobs)
+    _, b = convert_and_encode(src, tmp_path / "b.pxc", _tiny_config(iters=6), log=lambda s: None, **knobs)
+    assert (tmp_path / "a.pxc").read_bytes() == (tmp_path / "b.pxc").read_bytes()
+    assert "seconds" not in a.meta["convert"] and a.meta["convert"]["iterations"] == 6
+
+
 def test_an_interrupted_conversion_resumes_to_the_same_scene(tmp_path):
     from proxycodec.model import SceneModel
 
