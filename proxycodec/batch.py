@@ -117,6 +117,7 @@ def plan(command: str, inputs: list[str], out_dir: str | os.PathLike, options: l
     if command != "eval" and dataset:
         raise ProxycodecError("--dataset is for batch eval")
     out = Path(out_dir)
+    dataset_hash = _hash_input(Path(dataset)) if dataset else None  # once: every task reads the same dataset
     seen: dict[str, int] = {}
     tasks = []
     for inp in inputs:
@@ -131,7 +132,7 @@ def plan(command: str, inputs: list[str], out_dir: str | os.PathLike, options: l
         if command in ("encode", "convert"):
             argv.append("--json")  # the report on stdout: the summary's PSNR
         key_src = {"command": command, "options": list(options), "input": _hash_input(p),
-                   "dataset": _hash_input(Path(dataset)) if dataset else None, "proxycodec": __version__}
+                   "dataset": dataset_hash, "proxycodec": __version__}
         key = hashlib.sha256(json.dumps(key_src, sort_keys=True).encode()).hexdigest()
         tasks.append(Task(name, command, str(p), str(output), tuple(argv), key, str(out / "logs" / f"{name}.log"),
                           threads))

@@ -303,11 +303,12 @@ def encode(
     _checked_scene(model, source_name)
     if source_bytes is None:
         source_bytes = _saved_size(model)
+    source_info = {"bytes": source_bytes, "name": os.path.basename(source_name)}
     has_fitted = fitted[0] is not None and cfg.use_fitted  # a stage-2 predictor, used as fitted
     distilled = choice = built = None
     if predictor is None and cfg.distill is None and cfg.images is None and not has_fitted:
         # 2a. no predictor of its own and no forced path: the fast path first, distillation only if it falls short
-        built = _build(model, fitted, cfg, None, say)
+        built = _build(model, fitted, cfg, None, source_info, say)
         choice = _choose_path(built.decoded, model, cfg, say)
         if choice["path"] == "distill":
             distilled = _distill(model, (None, None), cfg, say)
@@ -319,11 +320,10 @@ def encode(
     if distilled is not None:
         # 2b. the distilled proxy scene, its predictor and split used as fitted
         built = _build(distilled.model, (distilled.predictor, distilled.proxy_mask), replace(cfg, use_fitted=True),
-                       None, say, distilled=distilled)
+                       None, source_info, say, distilled=distilled)
     elif built is None:
-        built = _build(model, fitted, cfg, predictor, say)
+        built = _build(model, fitted, cfg, predictor, source_info, say)
     cfg, meta, sections, decoded = built.cfg, built.meta, built.sections, built.decoded
-    meta["source"] = {"bytes": source_bytes, "name": os.path.basename(source_name)}
     # the choice as measured, without its seconds: same input, same bytes (the time is in the report's seconds)
     meta["encode_choice"] = _jsonable({k: v for k, v in choice.items() if k != "seconds"})
     if distilled is not None:
@@ -365,8 +365,8 @@ class _Built:
     t_train: float
 
 
-def _build(model: SceneModel, fitted: tuple, cfg: EncodeConfig, predictor: ResidualPredictor | None, say: Progress,
-           distilled=None) -> _Built:
+def _build(model: SceneModel, fitted: tuple, cfg: EncodeConfig, predictor: ResidualPredictor | None, source: dict,
+           say: Progress, distilled=None) -> _Built:
     """Positions coded, proxies chosen, attributes quantised, the predictor fitted (L_recon, against the
     dequantised proxies), sections and metadata made, and the scene decoded from them as ``decode`` will."""
     scene = model.scene
@@ -397,7 +397,7 @@ def _build(model: SceneModel, fitted: tuple, cfg: EncodeConfig, predictor: Resid
                "cell_size_voxels": cell_size / voxel, "cell_target": cfg.cell_target, "seed": cfg.seed},
         cameras_in_source=len(model.cameras or []),
         scene=_jsonable({k: v for k, v in scene.metadata.items() if k != "quant_steps"}),  # steps: in "quant"
-        source={},
+        source=source,
         encoder={"zstd_level": cfg.zstd_level, "proxycodec": _version()},
         **({} if distilled is None else {"distill": {
             "iterations": distilled.iterations, "images": cfg.images,
@@ -527,8 +527,8 @@ def _entropy_code(sections: dict, meta: dict, pos_sorted: np.ndarray, voxel: flo
     a = entropy.Attributes(feats, entropy.centred(sections[SCALINGS].T, bits["scalings"]),
                            entropy.centred(sections[OFFSETS].T, bits["offsets"]))
     ctx = entropy.Context.of(pos_sorted, voxel, mask)
-    start = entropy_fit.start_bytes(ctx, a)
-    if cfg.entropy == "auto" and zstd_bytes < AUTO_MIN_START_RATIO * start:
+    start = entropy_fit.start_bytes(ctx, a) if cfg.entropy == "auto" else None
+    if start is not None and zstd_bytes < AUTO_MIN_START_RATIO * start:
         say(f"entropy model: zstd's {zstd_bytes:,} B are {zstd_bytes / start:.2f}x the model's starting point "
             f"({start:,.0f} B; below {AUTO_MIN_START_RATIO:g}x its fit cannot catch up): zstd kept (scene format 2)")
         return sections, frozenset()

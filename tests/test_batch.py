@@ -5,6 +5,7 @@ failing alone with its one-line error, re-runs skipping what finished."""
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 
@@ -36,7 +37,7 @@ def scenes(tmp_path_factory):
 def _alone(scene: str, out: str) -> bytes:
     """The command run by hand, as the batch's tasks run it (one thread)."""
     r = subprocess.run([sys.executable, "-m", "proxycodec.cli", "--threads", "1", "encode", scene, "-o", out, *OPTIONS],
-                       capture_output=True, text=True, env={**__import__("os").environ, "NUMBA_NUM_THREADS": "1"})
+                       capture_output=True, text=True, env={**os.environ, "NUMBA_NUM_THREADS": "1"})
     assert r.returncode == 0, r.stderr
     with open(out, "rb") as fh:
         return fh.read()

@@ -159,7 +159,7 @@ class Runner:
             elif isinstance(v, list):
                 for x in v:
                     yield from paths(x)
-            elif isinstance(v, str) and os.path.isabs(v) or isinstance(v, str) and os.sep in v:
+            elif isinstance(v, str) and (os.path.isabs(v) or os.sep in v):
                 yield v
 
         return all(Path(v).exists() for v in paths(args) if str(Path(v).resolve()).startswith(root))
