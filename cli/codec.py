@@ -201,33 +201,56 @@ def load_cameras(spec: str):
 @click.command()
 @click.argument("container", type=click.Path(dir_okay=False))
 @click.option("--res", "res", default="1.0", show_default=True,
-              help="Comma-separated resolution ratios in [0.025, 2.0].")
+              help="Comma-separated resolution ratios in [0.025, 2.0] (an export takes one).")
 @click.option("--cameras", "cameras", type=click.Path(), default=None,
               help="A dataset folder or cameras.json (default: the stored cameras, else an orbit).")
 @click.option("-o", "--out", "out_dir", type=click.Path(file_okay=False), default=None,
               help="Folder for the PNGs (default: CONTAINER without suffix + _renders).")
 @click.option("--view", "views", multiple=True, type=int, help="Camera index (repeatable; default: all).")
-@click.option("--no-render", is_flag=True, help="Only decode (and write --ply); render nothing.")
+@click.option("--no-render", is_flag=True, help="Only decode (and export); render nothing.")
 @click.option("--ply", "ply", type=click.Path(dir_okay=False), default=None,
-              help="Also write the decoded Gaussians as a standard INRIA 3DGS PLY.")
-@click.option("--ply-res", default=1.0, show_default=True, type=float, help="Resolution ratio the PLY is decoded for.")
-@click.option("--ply-view", default=0, show_default=True, type=int, help="Camera the PLY is decoded for.")
+              help="Export the Gaussians decoded for --res as a standard INRIA 3DGS PLY.")
+@click.option("--spz", "spz", type=click.Path(dir_okay=False), default=None,
+              help="Export them as SPZ (version 4).")
+@click.option("--glb", "glb", type=click.Path(dir_okay=False), default=None,
+              help="Export them as glTF 2.0 binary with KHR_gaussian_splatting.")
+@click.option("--lod", "lod", type=click.Path(file_okay=False), default=None,
+              help="Write a level-of-detail set to this folder: one file per --levels entry plus lod.json.")
+@click.option("--levels", default=",".join(f"{x:g}" for x in (1.0, 0.5, 0.25, 0.125)), show_default=True,
+              help="Resolution ratios of the LOD levels, finest first.")
+@click.option("--lod-format", default="spz", show_default=True, type=click.Choice(["spz", "ply", "glb"]),
+              help="File format of the LOD levels.")
+@click.option("--sh-degree", default=1, show_default=True, type=click.IntRange(0, 3),
+              help="Exported colour: SH of this degree fitted to the decoded colours over the bake's views.")
+@click.option("--bake-view", default=None, type=int,
+              help="Export the colours of this stored camera instead (SH degree 0).")
 @click.option("--backend", default="auto", show_default=True,
               type=click.Choice(["auto", "reference", "cpu", "cuda"]), help="Compositing backend.")
 @user_errors
-def decode(container, res, cameras, out_dir, views, no_render, ply, ply_res, ply_view, backend) -> None:
+def decode(container, res, cameras, out_dir, views, no_render, ply, spz, glb, lod, levels, lod_format, sh_degree,
+           bake_view, backend) -> None:
     """Decode CONTAINER (the leaves' features regenerated from their nearest proxies by its residual predictor)
     and render its views at any resolution: PNGs in OUT (default CONTAINER_renders/viewNNN_resX.XXX.png), on the
-    background the scene was trained on; --ply also writes the decoded Gaussians as a standard INRIA 3DGS PLY.
+    background the scene was trained on.
 
-    Rendering on the CPU without --ply never imports torch (numpy + the numba kernels, the same results); --ply,
-    --backend reference|cuda and containers that path does not cover take the torch path."""
-    from ..camera import check_xi
+    --ply, --spz and --glb export the Gaussians decoded for one resolution (--res) as a plain 3DGS set: opacities
+    gated for that resolution (what the gate switches off is left out), colours as SH fitted over many views.
+    --lod writes one such file per level. With an export, PNGs are rendered only when -o or --view asks for them.
+
+    Rendering on the CPU without an export never imports torch (numpy + the numba kernels, the same results);
+    exports, --backend reference|cuda and containers that path does not cover take the torch path."""
+    from ..export import parse_levels
 
     resolutions = parse_resolutions(res)
-    check_xi(ply_res)
+    exports = {k: v for k, v in (("ply", ply), ("spz", spz), ("glb", glb)) if v}
+    exporting = bool(exports or lod)
+    if exports and len(resolutions) != 1:
+        raise ProxycodecError(f"--ply/--spz/--glb export one resolution; --res gives {len(resolutions)}")
+    lod_levels = parse_levels(levels) if lod else None
+    if lod and bake_view is not None:
+        raise ProxycodecError("--bake-view applies to --ply/--spz/--glb, not to --lod")
     t0 = time.perf_counter()
-    lite = _decode_lite(container) if backend in ("auto", "cpu") and not ply else None
+    lite = _decode_lite(container) if backend in ("auto", "cpu") and not exporting else None
     if lite is not None:
         from ..lite import default_cameras
 
@@ -240,18 +263,34 @@ def decode(container, res, cameras, out_dir, views, no_render, ply, ply_res, ply
     _stderr(f"decoded {n_anchors} anchors in {time.perf_counter() - t0:.2f} s")
     cams = load_cameras(cameras) if cameras else default_cameras(model)
     model.cameras = cams
-    if ply:
-        from .. import codec
-
-        if not 0 <= ply_view < len(cams):
-            raise ProxycodecError(f"--ply-view {ply_view} does not exist ({len(cams)} cameras)")
-        n = codec.write_gaussian_ply(ply, codec.export_gaussians(model, cams[ply_view], ply_res))
-        click.echo(f"wrote {ply}: {n} Gaussians decoded for view {ply_view} at xi {ply_res:g} "
-                   "(colours baked for that view; ungated opacity)")
-    if not no_render:
+    if exporting:
+        _export(model, container, exports, resolutions[0], lod, lod_levels, lod_format, sh_degree, bake_view)
+    if not no_render and (not exporting or out_dir or views):
         out = Path(out_dir) if out_dir else Path(container).with_suffix("").with_name(
             Path(container).stem + "_renders")
         render_views(model, resolutions, out, list(views) or None, backend)
+
+
+def _export(model, container, exports: dict, xi: float, lod, levels, lod_format: str, sh_degree: int,
+            bake_view) -> None:
+    from ..export import BakeConfig, bake, write_gaussians, write_lod
+
+    if exports:
+        t = time.perf_counter()
+        baked = bake(model, BakeConfig(xi=xi, sh_degree=sh_degree, view=bake_view))
+        i = baked.info
+        _stderr(f"decoded for resolution {xi:g} from {i['views']} views in {time.perf_counter() - t:.1f} s: "
+                f"{i['gaussians']} of {i['slots']} neural Gaussians kept ({i['below_min_opacity']} gated or "
+                f"faded below 1/255, {i['never_shown']} never shown); colour {i['colour']}")
+        for fmt, path in exports.items():
+            n = write_gaussians(path, baked.ply, fmt)
+            click.echo(f"wrote {path}: {baked.ply.n_gaussians} Gaussians, {n} B ({fmt}, resolution {xi:g}, "
+                       f"colour {i['colour']})")
+    if lod:
+        m = write_lod(model, lod, levels, fmt=lod_format, sh_degree=sh_degree, source=Path(container).name,
+                      log=_stderr)
+        click.echo(f"wrote {Path(lod) / 'lod.json'}: {m['lodLevels']} levels, "
+                   + ", ".join(f"{e['resolution']:g}: {e['count']} Gaussians {e['bytes']} B" for e in m["levels"]))
 
 
 def _decode_lite(container):

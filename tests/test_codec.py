@@ -403,14 +403,20 @@ class TestCli:
         cams.write_text(json.dumps([c.to_json() for c in m.cameras[:1]]))
         out = tmp_path / "renders"
         r = run(cli, ["decode", str(pxc), "--res", "0.3,0.5", "--cameras", str(cams), "-o", str(out),
-                      "--ply", str(tmp_path / "g.ply"), "--ply-res", "0.5", "--backend", "reference"])
+                      "--backend", "reference"])
         assert r.exit_code == 0, r.output
         assert sorted(p.name for p in out.iterdir()) == ["view000_res0.300.png", "view000_res0.500.png"]
+        # An export renders nothing unless -o or --view asks; it takes one resolution.
+        r = run(cli, ["decode", str(pxc), "--res", "0.5", "--ply", str(tmp_path / "g.ply")])
+        assert r.exit_code == 0, r.output
+        assert not (tmp_path / "s_renders").exists()
         from proxycodec.formats.inria_ply import read_inria_ply
 
         g = read_inria_ply(tmp_path / "g.ply")
-        assert g.n_gaussians > 0 and g.sh_degree == 0
+        assert g.n_gaussians > 0 and g.sh_degree == 1
         assert np.allclose(np.linalg.norm(g.quats, axis=1), 1.0, atol=1e-5)
+        r = run(cli, ["decode", str(pxc), "--res", "0.3,0.5", "--ply", str(tmp_path / "h.ply")])
+        assert r.exit_code == 2 and "one resolution" in r.output
 
     def test_user_errors_are_one_line(self, tmp_path):
         m = tiny_model(50)
