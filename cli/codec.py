@@ -117,7 +117,7 @@ def encode(scene, out, weights, proxy_ratio, proxy_selection, cell_size, feature
       renders on its --background), then its anchor scene (with its stage-2 predictor) is encoded.
     """
     from .. import codec
-    from ..explicit import is_inria_ply
+    from ..formats.splats import splat_kind
 
     p = Path(scene)
     out = out or str(p.resolve().with_name(p.resolve().name + ".pxc") if p.is_dir() else p.with_suffix(".pxc"))
@@ -127,7 +127,7 @@ def encode(scene, out, weights, proxy_ratio, proxy_selection, cell_size, feature
                  predictor_context=predictor_context, predictor_iters=predictor_iters, leaf_sample=leaf_sample, zstd_level=zstd_level, seed=seed,
                  entropy=entropy, entropy_iters=entropy_iters, lambda_rate=lambda_rate, quant_cells=quant_cells,
                  learned_steps=learned_steps)
-    if not p.is_dir() and is_inria_ply(p):
+    if not p.is_dir() and splat_kind(p):
         from ..convert import convert_and_encode
         from .convert import make_config
 
@@ -335,6 +335,13 @@ def stats(file, as_json) -> None:
             click.echo(f"  {'trailing':10s} {s['trailing_bytes']:12,} B")
         click.echo(f"  `proxycodec convert {s['file']} -o scene.ply` makes an anchor scene of it; "
                    f"`proxycodec encode {s['file']}` converts and compresses it")
+        return
+    if s["type"] in ("spz", "glb"):
+        extra = ", ".join(f"{k} {v}" for k, v in s["header"].items())
+        click.echo(f"{s['file']}: {s['what']}, {s['gaussians']:,} Gaussians, SH degree {s['sh_degree']}, "
+                   f"{s['file_bytes']:,} B ({s['bytes_per_gaussian']:.1f} B per Gaussian); {extra}")
+        click.echo(f"  `proxycodec render {s['file']}` renders it as plain 3DGS; `proxycodec encode {s['file']}` "
+                   "converts and compresses it")
         return
     if s["type"] == "ply":
         sg = s.get("scaffold_gs")

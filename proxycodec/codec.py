@@ -240,10 +240,10 @@ def _source_model(source) -> tuple[SceneModel, int | None, str, tuple]:
         if is_scaffold_output(source):  # a trained Scaffold-GS output: PLY + its MLP files (scaffold_gs.py)
             model = load_scaffold_output(source)
             return model, model.meta["scaffold_gs"]["bytes"], str(Path(source)), (None, None)
-        from .explicit import is_inria_ply
+        from .formats.splats import SPLAT_KINDS, splat_kind
 
-        if is_inria_ply(source):
-            raise ProxycodecError("is an INRIA 3DGS PLY, not an anchor scene: `proxycodec encode` converts it "
+        if splat_kind(source):
+            raise ProxycodecError(f"is an {SPLAT_KINDS[splat_kind(source)]}, not an anchor scene: `proxycodec encode` converts it "
                                   "first (or `proxycodec convert`; in Python, proxycodec.convert)", source)
         ply, w = Path(source), weights_path_for(source)
     else:
@@ -823,11 +823,27 @@ def stats(path: str | os.PathLike) -> dict:
         raise ProxycodecError("is a directory", path) from None
     if head == MAGIC:
         return _container_stats(path)
-    from .explicit import is_inria_ply
+    from .formats.splats import splat_kind
 
-    if is_inria_ply(path):
+    kind = splat_kind(path)
+    if kind == "ply":
         return _inria_stats(path)
+    if kind:
+        return _splat_stats(path, kind)
     return _ply_stats(path)
+
+
+def _splat_stats(path: Path, kind: str) -> dict:
+    """An SPZ or a GLB: Gaussian count, SH degree, what its header says, bytes per Gaussian."""
+    from .formats.splats import SPLAT_KINDS, read_splats
+
+    ply, info = read_splats(path)
+    size = path.stat().st_size
+    n = ply.n_gaussians
+    keep = ("version", "antialiased", "fractional_bits", "generator", "kernel", "color_space", "y_up_undone")
+    return {"file": str(path), "type": kind, "what": SPLAT_KINDS[kind], "gaussians": n, "sh_degree": ply.sh_degree,
+            "file_bytes": size, "bytes_per_gaussian": size / n if n else None,
+            "header": {k: info[k] for k in keep if k in info}}
 
 
 #: INRIA 3DGS PLY properties by what they hold (``stats``)

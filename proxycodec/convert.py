@@ -367,13 +367,13 @@ def convert(ply_path: str | os.PathLike, out_ply: str | os.PathLike, config: Con
     it). ``stop_after`` (tests): interrupt after that many training iterations."""
     from .distill import TeacherViews, held_out_report, report_line
     from .explicit import ExplicitModel, ply_background
-    from .formats.inria_ply import read_inria_ply
+    from .formats.splats import read_splats
     from .scaffold_gs import find_cameras_json, read_scaffold_cameras
     from .train import fit
 
     log = log or (lambda s: print(s, file=sys.stderr, flush=True))
     t0 = time.perf_counter()
-    ply = read_inria_ply(ply_path)
+    ply, _ = read_splats(ply_path)
     g = load_gaussians(ply)
     log(f"convert: {ply.n_gaussians:,} Gaussians, SH degree {ply.sh_degree}, extent {g.extent:.4g}")
     if config.background is None:

@@ -44,7 +44,7 @@ import numpy as np
 import torch
 
 from .errors import ProxycodecError
-from .formats.inria_ply import GaussianPly, read_inria_ply, rgb_to_sh_dc, write_inria_ply
+from .formats.inria_ply import GaussianPly, rgb_to_sh_dc, write_inria_ply
 from .loop import (
     ProgressFn, TargetImages, TrainingRun, check_run_length, fmt_time, initial_points, knn_scale, ndc_grad_norm,
     photometric_loss, run_until_done,
@@ -520,15 +520,18 @@ class ExplicitModel:
 
     @staticmethod
     def load(path: str | os.PathLike, background=None) -> ExplicitModel:
-        """The PLY at ``path``, with the views of a 3DGS ``cameras.json`` beside it (or two folders up, 3DGS's
+        """The 3DGS file at ``path`` (an INRIA PLY, an SPZ or a GLB: ``formats.splats``), with the views of a 3DGS ``cameras.json`` beside it (or two folders up, 3DGS's
         output layout) when there is one, else an orbit around its Gaussians. ``background``: RGB in [0, 1]; None:
         the one the PLY was trained on (``ply_background``)."""
         from .camera import default_cameras
         from .scaffold_gs import find_cameras_json, read_scaffold_cameras
 
-        ply = read_inria_ply(path)
+        from .formats.splats import read_splats
+
+        ply, info = read_splats(path)
         cj = find_cameras_json(path)
         bg, where = ply_background(path) if background is None else (tuple(float(b) for b in background), "given")
-        model = ExplicitModel(ply, bg, {"kind": "inria-3dgs", "source": str(Path(path)), "background_from": where})
+        model = ExplicitModel(ply, bg, {"kind": "inria-3dgs", "source": str(Path(path)), "background_from": where,
+                                            "file_kind": info["kind"]})
         model.cameras = read_scaffold_cameras(cj) if cj else default_cameras(None, model.scene.bounds())
         return model
