@@ -8,14 +8,13 @@ with the reason when node/npm or the registry is absent.
 from __future__ import annotations
 
 import json
-import os
-import shutil
 import struct
 import subprocess
 from pathlib import Path
 
 import numpy as np
 import pytest
+from proxycodec.bench import node_tools
 from proxycodec.formats.gltf import encode_glb, read_glb, write_glb
 from proxycodec.formats.inria_ply import SATURATED_LOGIT, GaussianPly, read_inria_ply, write_inria_ply
 
@@ -24,8 +23,6 @@ from proxycodec.errors import ProxycodecError
 EXT = "KHR_gaussian_splatting"
 ROT, SCALE, OPACITY = f"{EXT}:ROTATION", f"{EXT}:SCALE", f"{EXT}:OPACITY"
 SH10 = f"{EXT}:SH_DEGREE_1_COEF_0"
-VALIDATOR = "gltf-validator@2.0.0-dev.3.10"
-SPLAT_TRANSFORM = "@playcanvas/splat-transform@2.7.1"
 
 
 def scene(n: int = 24, degree: int = 3, seed: int = 0) -> GaussianPly:
@@ -372,46 +369,16 @@ def test_every_truncation_and_byte_flip_raises_only_proxycodec_error(tmp_path):
 # -------------------------------------------------------------------------------------- third-party checks
 
 
-def _npm_dir() -> Path:
-    return Path(os.environ.get("PROXYCODEC_NPM_CACHE", Path.home() / ".cache" / "proxycodec-npm"))
-
-
 def _validator() -> Path:
     """The gltf-validator package directory (installed on first use), or skip."""
-    if shutil.which("node") is None or shutil.which("npm") is None:
-        pytest.skip("node/npm (Node.js) is not installed")
-    prefix = _npm_dir()
-    pkg = prefix / "node_modules" / "gltf-validator"
-    want = VALIDATOR.split("@")[1]
-    try:
-        have = json.loads((pkg / "package.json").read_text())["version"]
-    except (OSError, ValueError, KeyError):
-        have = None
-    if have != want:
-        prefix.mkdir(parents=True, exist_ok=True)
-        try:
-            cmd = ["npm", "install", "--prefix", str(prefix), "--no-audit", "--no-fund", VALIDATOR]
-            r = subprocess.run(cmd, check=False, capture_output=True, text=True, timeout=600)
-        except subprocess.TimeoutExpired:
-            pytest.skip(f"npm could not install {VALIDATOR} in time (no registry access?)")
-        if r.returncode != 0 or not (pkg / "package.json").is_file():
-            pytest.skip(f"npm could not install {VALIDATOR} (no registry access?): {r.stderr.strip()[-200:]}")
+    pkg, why = node_tools.gltf_validator()
+    if pkg is None:
+        pytest.skip(why)
     return pkg
 
 
 def _validate(pkg: Path, glb: Path, tmp_path: Path) -> dict:
-    script = tmp_path / "validate.js"
-    script.write_text(
-        "const fs = require('fs');\n"
-        "const validator = require(process.argv[2]);\n"
-        "const buf = fs.readFileSync(process.argv[3]);\n"
-        "validator.validateBytes(new Uint8Array(buf), {maxIssues: 0})\n"
-        "  .then((r) => console.log(JSON.stringify(r)))\n"
-        "  .catch((e) => { console.error(String(e)); process.exit(2); });\n")
-    r = subprocess.run(["node", str(script), str(pkg), str(glb)],
-                       check=False, capture_output=True, text=True, timeout=120)
-    assert r.returncode == 0, r.stderr
-    return json.loads(r.stdout)
+    return node_tools.validate_glb(pkg, glb)
 
 
 def test_gltf_validator_finds_no_error_but_the_extension_semantics(tmp_path):
@@ -445,16 +412,10 @@ def test_gltf_validator_finds_no_error_but_the_extension_semantics(tmp_path):
 
 
 def _splat_transform(*args: str, timeout: int = 300) -> subprocess.CompletedProcess:
-    if shutil.which("npx") is None:
-        pytest.skip("npx (Node.js) is not installed")
-    try:
-        r = subprocess.run(["npx", "-y", SPLAT_TRANSFORM, *args],
-                           check=False, capture_output=True, text=True, timeout=timeout)
-    except subprocess.TimeoutExpired:
-        pytest.skip(f"npx could not fetch {SPLAT_TRANSFORM} in time (no registry access?)")
-    if "splat-transform" not in r.stdout + r.stderr:
-        pytest.skip(f"npx could not run {SPLAT_TRANSFORM} (no registry access?): {r.stderr.strip()[-200:]}")
-    return r
+    why = node_tools.splat_transform_unavailable()
+    if why:
+        pytest.skip(why)
+    return node_tools.splat_transform(*args, timeout=timeout)
 
 
 def test_splat_transform_glb_matches_ours(tmp_path):

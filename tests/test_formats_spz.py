@@ -3,20 +3,18 @@ malformed files, and PlayCanvas splat-transform 2.7.1 (which runs Niantic's own 
 WebAssembly) as an independent reader and writer."""
 
 import gzip
-import shutil
 import struct
-import subprocess
 import zlib
 
 import numpy as np
 import pytest
+from proxycodec.bench import node_tools
 import zstandard
 from proxycodec.formats.inria_ply import GaussianPly, read_inria_ply, write_inria_ply
 from proxycodec.formats.spz import decode_spz, encode_spz, read_spz, write_spz
 
 from proxycodec.errors import ProxycodecError
 
-TOOL = "@playcanvas/splat-transform@2.7.1"
 
 # Round-trip bounds, from the quantisation of each attribute (formats/spz.py docstring).
 ALPHA_TOL = 0.5 / 255 + 1e-6  # on sigmoid(logit)
@@ -281,18 +279,12 @@ def test_missing_file_raises_proxycodec_error(tmp_path):
 
 @pytest.fixture(scope="module")
 def splat_transform():
-    if shutil.which("npx") is None:
-        pytest.skip("npx (Node.js) is not installed")
-    try:
-        r = subprocess.run(["npx", "-y", TOOL, "--help"], check=False, capture_output=True, text=True, timeout=240)
-    except subprocess.TimeoutExpired:
-        pytest.skip(f"npx could not fetch {TOOL} in time (no registry access?)")
-    if r.returncode != 0 or "splat-transform" not in r.stdout:
-        pytest.skip(f"npx could not run {TOOL} (no registry access?): {r.stderr.strip()[-200:]}")
+    why = node_tools.splat_transform_unavailable()
+    if why:
+        pytest.skip(why)
 
     def run(*args):
-        out = subprocess.run(["npx", "-y", TOOL, "-w", *map(str, args)], check=False, capture_output=True,
-                             text=True, timeout=240)
+        out = node_tools.splat_transform("-w", *args, timeout=240)
         assert out.returncode == 0, out.stdout + out.stderr
         return out
 

@@ -9,8 +9,6 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import shutil
-import subprocess
 import sys
 import time
 from collections.abc import Callable
@@ -20,8 +18,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import ProxycodecError
-
-SPZ_TOOL = "@playcanvas/splat-transform@2.7.1"
+from .node_tools import SPLAT_TRANSFORM as SPZ_TOOL
 
 
 def load_avg() -> list[float]:
@@ -138,34 +135,22 @@ def _step_eval(a: dict) -> dict:
     return out
 
 
-def _npx_tool() -> tuple[str | None, str | None]:
-    """(npx path, None) when ``SPZ_TOOL`` runs, else (None, why not)."""
-    npx = shutil.which("npx")
-    if npx is None:
-        return None, "npx (Node.js) is not installed"
-    try:
-        r = subprocess.run([npx, "-y", SPZ_TOOL, "--help"], capture_output=True, text=True, timeout=240)
-    except subprocess.TimeoutExpired:
-        return None, f"npx could not fetch {SPZ_TOOL} in time (no registry access?)"
-    if r.returncode != 0 or "splat-transform" not in r.stdout:
-        return None, f"npx could not run {SPZ_TOOL}: {r.stderr.strip()[-200:]}"
-    return npx, None
-
-
 def _step_spz(a: dict) -> dict:
     """INRIA PLY -> SPZ with splat-transform, then SPZ -> PLY again so that the SPZ's own quality can be evaluated."""
     import resource
 
-    npx, why = _npx_tool()
-    if npx is None:
+    from .node_tools import splat_transform, splat_transform_unavailable
+
+    why = splat_transform_unavailable()
+    if why:
         return {"skipped": why}
     t0 = time.perf_counter()
-    r = subprocess.run([npx, "-y", SPZ_TOOL, "-w", a["ply"], a["out"]], capture_output=True, text=True, timeout=900)
+    r = splat_transform("-w", a["ply"], a["out"], timeout=900)
     conv_s = time.perf_counter() - t0
     if r.returncode != 0:
         raise ProxycodecError(f"splat-transform failed: {(r.stdout + r.stderr).strip()[-300:]}")
     t0 = time.perf_counter()
-    r2 = subprocess.run([npx, "-y", SPZ_TOOL, "-w", a["out"], a["back"]], capture_output=True, text=True, timeout=900)
+    r2 = splat_transform("-w", a["out"], a["back"], timeout=900)
     back_s = time.perf_counter() - t0
     if r2.returncode != 0:
         raise ProxycodecError(f"splat-transform (SPZ -> PLY) failed: {(r2.stdout + r2.stderr).strip()[-300:]}")
