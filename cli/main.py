@@ -17,6 +17,7 @@ from .codec import decode, encode, stats
 from .commands import demo, render, sample
 from .convert import convert
 from .fit import eval_cmd, fit
+from .view import view  # imports viser only when the command runs
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
@@ -29,7 +30,7 @@ def cli(threads: int | None) -> None:
     set_threads(threads)
 
 
-for _command in (sample, render, demo, fit, convert, encode, decode, stats, eval_cmd, bench, batch):
+for _command in (sample, render, demo, fit, convert, encode, decode, stats, eval_cmd, bench, batch, view):
     cli.add_command(_command)
 
 
