@@ -19,7 +19,7 @@ from .common import user_errors
               help="Initial resolution ratio of the slider, in [0.025, 2.0] (of the browser viewport's pixels).")
 @user_errors
 def view(source: str, port: int, host: str, res: float) -> None:
-    """Open SOURCE (a container, an anchor scene or an INRIA 3DGS PLY) in a local web viewer; runs until Ctrl-C.
+    """Open SOURCE (a container, an anchor scene, a 3DGS PLY, SPZ or GLB) in a local web viewer; runs until Ctrl-C.
 
     The server renders each view with proxycodec's own renderer (view-dependent MLP colours, the coverage gate at
     the chosen resolution) and streams it to the browser; a slider sets the resolution ratio (the image is shown

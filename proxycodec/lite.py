@@ -214,6 +214,10 @@ class Gaussians:
     origin: np.ndarray  # [3] float32
     slot: np.ndarray | None = None  # [N] which of the K offsets (``NeuralGaussians.slot``)
 
+    @property
+    def count(self) -> int:
+        return int(self.means.shape[0])
+
 
 class Decoder:
     """``decoder.GaussianDecoder`` (inference only) on numpy arrays."""

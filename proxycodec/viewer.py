@@ -1,4 +1,4 @@
-"""``proxycodec view``: a local web viewer (viser) for a container, an anchor scene or an INRIA 3DGS PLY.
+"""``proxycodec view``: a local web viewer (viser) for a container, an anchor scene or a 3DGS PLY, SPZ or GLB.
 
 Design: the server renders every frame with *our* renderer (``model.render``) and streams the image to the browser
 as viser's background image, as nerfview does, instead of handing Gaussians to viser's client-side splat renderer.
@@ -21,7 +21,8 @@ of view in radians; ``image_width`` / ``image_height`` are the canvas's drawing-
 stretches the background image over the whole viewport, so the principal point is the image centre and pixels are
 square.
 
-viser is imported only when a viewer starts (``pip install -e '.[view]'``).
+A container is decoded and rendered by the torch-free path (``lite``: torch is never imported, ~1.5 s of the
+start), other files by ``scenes.load_any``. viser is imported only when a viewer starts (``pip install -e '.[view]'``).
 """
 
 from __future__ import annotations
@@ -266,25 +267,20 @@ class Viewer:
         """Render ``view`` (a ``Camera`` given at the viewport size, or a viser camera state) at ``xi`` (default:
         the slider's): ``model.render(camera, xi)`` at ``round(xi W) x round(xi H)`` pixels for the viewport
         ``size`` (width, height; default the camera's or the client's), upscaled nearest to the viewport."""
-        import torch
-
-        from .model import image_to_uint8
-
         xi = check_xi(self.xi if xi is None else xi)
         cam, (W, H) = _view_camera(view, size, self.max_size)
         with self._render_lock:
             t0 = time.perf_counter()
             r = self.model.render(cam, xi)
             ms = (time.perf_counter() - t0) * 1000.0
-        with torch.no_grad():
-            image = r.image.detach().cpu().numpy()
-            u8 = image_to_uint8(r.image)
+        image = _numpy(r.image)
+        u8 = (np.clip(image, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)  # model.image_to_uint8's rounding
         h, w = image.shape[:2]
         stats: dict = {"xi": xi, "width": w, "height": h, "viewport": (W, H), "render_ms": ms,
                        "gaussians_projected": r.projected.count}
         vis = getattr(r, "visible_anchor_index", None)
         if vis is not None:
-            stats.update(anchors=int(self.model.scene.num_anchors), anchors_kept=len(vis),
+            stats.update(anchors=_num_anchors(self.model), anchors_kept=len(vis),
                          gaussians_decoded=int(r.gaussians.count))
         else:
             stats["gaussians"] = int(self.model.scene.num_gaussians)
@@ -387,7 +383,7 @@ class Viewer:
 
 
 def _scene_center(model) -> np.ndarray:
-    b = np.asarray(model.scene.bounds(), dtype=np.float64)
+    b = np.asarray(_bounds(model), dtype=np.float64)
     return b.mean(0)
 
 
@@ -396,7 +392,47 @@ def initial_camera_of(model) -> Camera:
     from .camera import default_cameras
 
     cams = getattr(model, "cameras", None)
-    return cams[0] if cams else default_cameras(None, model.scene.bounds())[0]
+    return cams[0] if cams else default_cameras(None, _bounds(model))[0]
+
+
+def _bounds(model) -> np.ndarray:
+    """[2, 3] box of a ``SceneModel``'s anchors, an ``ExplicitModel``'s Gaussians or a ``lite.LiteScene``'s."""
+    return model.bounds() if hasattr(model, "bounds") else model.scene.bounds()
+
+
+def _num_anchors(model) -> int:
+    return int(model.num_anchors) if hasattr(model, "num_anchors") else int(model.scene.num_anchors)
+
+
+def _numpy(image) -> np.ndarray:
+    """A render's image as float32 numpy (torch tensors detached; numpy from the torch-free path as is)."""
+    return np.asarray(image.detach().cpu().numpy() if hasattr(image, "detach") else image, dtype=np.float32)
+
+
+def load_for_viewing(path):
+    """A container by the torch-free path (``lite``: no torch import, ~1.5 s less to start), else
+    ``scenes.load_any`` (anchor PLYs, Scaffold-GS outputs, 3DGS PLY / SPZ / GLB files, containers lite does not
+    cover)."""
+    from .formats.container import MAGIC
+
+    try:
+        with open(path, "rb") as fh:
+            is_container = fh.read(len(MAGIC)) == MAGIC
+    except OSError:
+        is_container = False
+    if is_container:
+        try:
+            from . import lite
+        except ImportError:  # no numba
+            lite = None
+        if lite is not None:
+            try:
+                return lite.decode(path)
+            except lite.Unsupported:
+                pass
+    from .scenes import load_any
+
+    return load_any(path)
 
 
 def start_viewer(source, *, host: str = "127.0.0.1", port: int = 8080, res: float = 1.0,
@@ -415,10 +451,8 @@ def start_viewer(source, *, host: str = "127.0.0.1", port: int = 8080, res: floa
     if max_size is not None and int(max_size) < 1:
         raise ProxycodecError(f"max_size must be at least 1, got {max_size}")
     viser = import_viser()
-    from .scenes import load_any
-
     if isinstance(source, (str, os.PathLike)):
-        model = load_any(source)
+        model = load_for_viewing(source)
     else:
         model = source  # a model already in memory (tests)
     cam0 = initial_camera_of(model)

@@ -245,6 +245,33 @@ def test_start_from_a_file_serves_and_reports_its_time(tiny, tmp_path):
         v.stop()
 
 
+def test_a_container_is_viewed_by_the_torch_free_path(tiny, tmp_path):
+    """A container loads with ``lite`` (no torch import: the viewer starts ~1.5 s sooner); its frames are the
+    torch-free render's, bit for bit, and within the torch-free path's float32 distance of the torch render."""
+    pytest.importorskip("viser")
+    from proxycodec import codec, lite
+    from proxycodec.viewer import start_viewer
+
+    pxc = tmp_path / "t.pxc"
+    codec.encode(tiny, pxc, distill=False, predictor_iters=20, zstd_level=3)
+    v = start_viewer(pxc, port=_free_port(), log=None)
+    try:
+        assert isinstance(v.model, lite.LiteScene)
+        cam = tiny.cameras[0].sized(96, 72)
+        f = v.frame_for(cam, xi=0.5)
+        np.testing.assert_array_equal(f.image, lite.decode(pxc).render(cam, 0.5).image)
+        ref = codec.decode(pxc).render(cam, 0.5).image.numpy()
+        assert np.abs(f.image - ref).max() < 2e-3
+        assert f.stats["anchors"] == tiny.scene.num_anchors and f.stats["gaussians_decoded"] > 0
+    finally:
+        v.stop()
+    code = ("import sys; from proxycodec.viewer import start_viewer; "
+            f"v = start_viewer({str(pxc)!r}, port={_free_port()}, log=None); v.stop(); "
+            "print('torch' in sys.modules)")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0 and r.stdout.strip().splitlines()[-1] == "False", r.stdout + r.stderr
+
+
 # ============================================================================================== command line
 def test_cli_without_viser_is_one_line(monkeypatch, tmp_path):
     from proxycodec.cli.main import cli
