@@ -3,25 +3,20 @@ the page in a headless Chromium driven over its DevTools protocol (skipped witho
 
 from __future__ import annotations
 
-import base64
-import io
-import itertools
-import json
 import math
 import re
 import shutil
-import socket
 import subprocess
 import sys
 import time
 import urllib.request
-from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
 from click.testing import CliRunner
 
+from proxycodec.bench.browser import ONLY_THE_CANVAS, DevTools, chromium, free_port, wait_for
 from proxycodec.camera import Camera
 from proxycodec.viewer import (
     VIEWER_NEEDS,
@@ -35,12 +30,6 @@ from proxycodec.viewer import (
 pytestmark = pytest.mark.usefixtures("one_thread")
 
 CENTER = (0.0, 0.0, 0.3)  # the built-in scene's middle
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def _psnr(a: np.ndarray, b: np.ndarray) -> float:
@@ -66,7 +55,7 @@ def viewer(tiny):
     pytest.importorskip("viser", reason="the viewer needs viser (pip install -e '.[view]')")
     from proxycodec.viewer import start_viewer
 
-    v = start_viewer(tiny, port=_free_port(), res=0.5, log=None)
+    v = start_viewer(tiny, port=free_port(), res=0.5, log=None)
     yield v
     v.stop()
 
@@ -233,7 +222,7 @@ def test_start_from_a_file_serves_and_reports_its_time(tiny, tmp_path):
 
     ply, _ = tiny.save(tmp_path / "tiny.ply")
     lines = []
-    v = start_viewer(ply, port=_free_port(), log=lines.append)
+    v = start_viewer(ply, port=free_port(), log=lines.append)
     try:
         assert len(lines) == 1 and re.fullmatch(rf"serving {re.escape(v.url)} in \d+\.\d s", lines[0]), lines
         assert v.start_seconds < 30
@@ -254,7 +243,7 @@ def test_a_container_is_viewed_by_the_torch_free_path(tiny, tmp_path):
 
     pxc = tmp_path / "t.pxc"
     codec.encode(tiny, pxc, distill=False, predictor_iters=20, zstd_level=3)
-    v = start_viewer(pxc, port=_free_port(), log=None)
+    v = start_viewer(pxc, port=free_port(), log=None)
     try:
         assert isinstance(v.model, lite.LiteScene)
         cam = tiny.cameras[0].sized(96, 72)
@@ -266,7 +255,7 @@ def test_a_container_is_viewed_by_the_torch_free_path(tiny, tmp_path):
     finally:
         v.stop()
     code = ("import sys; from proxycodec.viewer import start_viewer; "
-            f"v = start_viewer({str(pxc)!r}, port={_free_port()}, log=None); v.stop(); "
+            f"v = start_viewer({str(pxc)!r}, port={free_port()}, log=None); v.stop(); "
             "print('torch' in sys.modules)")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0 and r.stdout.strip().splitlines()[-1] == "False", r.stdout + r.stderr
@@ -297,7 +286,7 @@ def test_cli_serves_until_ctrl_c(tiny, tmp_path):
     import signal
 
     ply, _ = tiny.save(tmp_path / "tiny.ply")
-    port = _free_port()
+    port = free_port()
     p = subprocess.Popen([sys.executable, "-m", "proxycodec.cli", "view", str(ply), "--port", str(port), "--res", "0.5"],
                          stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
@@ -315,109 +304,6 @@ def test_cli_serves_until_ctrl_c(tiny, tmp_path):
 
 
 # ============================================================================================== in a browser
-def _chromium() -> str | None:
-    for name in ("chromium", "chromium-browser", "google-chrome", "google-chrome-stable"):
-        path = shutil.which(name)
-        if path:
-            return path
-    return None
-
-
-class DevTools:
-    """Headless Chromium driven over its DevTools protocol (the ``websockets`` package viser depends on)."""
-
-    def __init__(self, exe: str, profile: Path, width: int, height: int):
-        from websockets.sync.client import connect
-
-        port = _free_port()
-        self.proc = subprocess.Popen(
-            [exe, "--headless=new", "--no-sandbox", "--no-first-run", "--no-default-browser-check",
-             "--disable-extensions", "--disable-background-networking", "--disable-dev-shm-usage",
-             "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--force-device-scale-factor=1",
-             f"--remote-debugging-port={port}", "--remote-debugging-address=127.0.0.1",
-             f"--user-data-dir={profile}", f"--window-size={width},{height + 200}", "about:blank"],
-            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        try:
-            deadline = time.monotonic() + 30
-            while True:
-                try:
-                    with urllib.request.urlopen(f"http://127.0.0.1:{port}/json/list", timeout=2) as r:
-                        pages = [t for t in json.load(r) if t.get("type") == "page"]
-                    if pages:
-                        break
-                except OSError:
-                    pass
-                if time.monotonic() > deadline or self.proc.poll() is not None:
-                    raise RuntimeError("Chromium did not open its DevTools port")
-                time.sleep(0.2)
-            self.ws = connect(pages[0]["webSocketDebuggerUrl"], max_size=2**28, open_timeout=10)
-        except BaseException:
-            self.close()
-            raise
-        self.ids = itertools.count(1)
-        self.call("Emulation.setDeviceMetricsOverride", width=width, height=height, deviceScaleFactor=1, mobile=False)
-
-    def call(self, method: str, timeout: float = 30, **params):
-        i = next(self.ids)
-        self.ws.send(json.dumps({"id": i, "method": method, "params": params}))
-        deadline = time.monotonic() + timeout
-        while True:
-            msg = json.loads(self.ws.recv(timeout=max(0.01, deadline - time.monotonic())))
-            if msg.get("id") == i:
-                if "error" in msg:
-                    raise RuntimeError(f"{method}: {msg['error']}")
-                return msg["result"]
-
-    def eval(self, expr: str):
-        return self.call("Runtime.evaluate", expression=expr, returnByValue=True)["result"].get("value")
-
-    def screenshot(self) -> tuple[bytes, np.ndarray]:
-        from PIL import Image
-
-        raw = base64.b64decode(self.call("Page.captureScreenshot", format="png")["data"])
-        return raw, np.asarray(Image.open(io.BytesIO(raw)).convert("RGB"))
-
-    def drag(self, x0: float, y0: float, x1: float, y1: float, steps: int = 8) -> None:
-        self.call("Input.dispatchMouseEvent", type="mouseMoved", x=x0, y=y0)
-        self.call("Input.dispatchMouseEvent", type="mousePressed", x=x0, y=y0, button="left", buttons=1,
-                  clickCount=1)
-        for k in range(1, steps + 1):
-            t = k / steps
-            self.call("Input.dispatchMouseEvent", type="mouseMoved", x=x0 + t * (x1 - x0), y=y0 + t * (y1 - y0),
-                      button="left", buttons=1)
-            time.sleep(0.03)
-        self.call("Input.dispatchMouseEvent", type="mouseReleased", x=x1, y=y1, button="left", buttons=0,
-                  clickCount=1)
-
-    def close(self) -> None:
-        ws = getattr(self, "ws", None)
-        if ws is not None:
-            ws.close()
-        if self.proc.poll() is None:
-            self.proc.terminate()
-            try:
-                self.proc.wait(10)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait(10)
-
-
-ONLY_THE_CANVAS = ("(() => { const s = document.createElement('style'); s.id = 'only-the-canvas'; s.textContent = "
-                   "'body * { visibility: hidden !important } canvas { visibility: visible !important }'; "
-                   "document.head.appendChild(s); return true })()")
-
-
-def _wait(pred, timeout: float, what: str, step: float = 0.05):
-    deadline = time.monotonic() + timeout
-    while True:
-        v = pred()
-        if v:
-            return v
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out waiting for {what}")
-        time.sleep(step)
-
-
 def _close(a: Camera, b: Camera, tol: float = 1e-6) -> bool:
     return (np.abs(a.world_to_camera - b.world_to_camera).max() < tol and abs(a.fy / b.fy - 1) < tol
             and (a.width, a.height) == (b.width, b.height))
@@ -430,7 +316,7 @@ def test_browser_shows_our_render(viewer, tiny, tmp_path):
     from proxycodec.model import image_to_uint8
     from proxycodec.viewer import set_client_camera
 
-    exe = _chromium()
+    exe = chromium()
     if exe is None:
         pytest.skip("no Chromium (Debian: apt-get install chromium)")
     W, H = 640, 400
@@ -441,14 +327,14 @@ def test_browser_shows_our_render(viewer, tiny, tmp_path):
         # viewer follows the canvas size it is sent, and the browser would stretch that canvas bilinearly
         browser.call("Page.navigate", url=viewer.url + "/?fixedDpr=1")
         assert viewer.wait_frames(n0 + 1, 90), "the viewer sent no frame to the browser"
-        client = _wait(lambda: next(iter(viewer.server.get_clients().values()), None), 10, "the client")
+        client = wait_for(lambda: next(iter(viewer.server.get_clients().values()), None), 10, "the client")
         seen = []  # cameras the browser reports
         client.camera.on_update(lambda h: seen.append(camera_from_viser(h.position, h.wxyz, h.fov, h.image_width,
                                                                          h.image_height)))
         # the initial camera is the scene's first, at the viewport's size with its vertical field of view (the
         # page may first report viser's default camera, before it gets ours)
         cam0 = tiny.cameras[0]
-        first = _wait(lambda: viewer.last_frame.camera if np.abs(viewer.last_frame.camera.world_to_camera
+        first = wait_for(lambda: viewer.last_frame.camera if np.abs(viewer.last_frame.camera.world_to_camera
                                                                  - cam0.world_to_camera).max() < 1e-6 else None,
                       20, "a frame of the scene's first camera")
         assert (first.width, first.height) == (W, H)
@@ -457,7 +343,7 @@ def test_browser_shows_our_render(viewer, tiny, tmp_path):
         # 1. from the server
         target = Camera.look_at((1.7, -1.9, 1.25), (0.1, 0.05, 0.3), fov_x_deg=62, width=W, height=H)
         set_client_camera(client, target, CENTER)
-        _wait(lambda: any(_close(c, target) for c in seen), 20, "the browser to report the new camera")
+        wait_for(lambda: any(_close(c, target) for c in seen), 20, "the browser to report the new camera")
         ref = upscale_nearest(image_to_uint8(tiny.render(target, viewer.xi).image), W, H)
         browser.eval(ONLY_THE_CANVAS)
 
@@ -468,7 +354,7 @@ def test_browser_shows_our_render(viewer, tiny, tmp_path):
             same, previous[0] = previous[0] is not None and np.array_equal(previous[0], img), img
             return (raw, img) if same and img.shape == ref.shape and _psnr(img, ref) > 30 else None
 
-        raw, img = _wait(matches, 20, "the screenshot to show our render", step=0.2)
+        raw, img = wait_for(matches, 20, "the screenshot to show our render", step=0.2)
         psnr = _psnr(img, ref)
         shot = tmp_path / "view_screenshot.png"
         shot.write_bytes(raw)
@@ -494,16 +380,16 @@ def test_browser_shows_our_render(viewer, tiny, tmp_path):
                 ys, xs = np.nonzero(np.abs(img.astype(int) - ref).sum(-1) > 60)
                 return (xs.mean() + 0.5, ys.mean() + 0.5) if len(xs) >= 4 else None
 
-            got = _wait(drawn, 20, "the marker", step=0.2)
+            got = wait_for(drawn, 20, "the marker", step=0.2)
             marker.remove()
-            _wait(lambda: drawn() is None, 20, "the marker to go", step=0.2)
+            wait_for(lambda: drawn() is None, 20, "the marker to go", step=0.2)
             print(f"marker at ({u:.1f}, {v:.1f}) px by our camera, ({got[0]:.2f}, {got[1]:.2f}) px in the browser")
             assert got == pytest.approx((u, v), abs=1.0), (got, (u, v))
 
         # 3. by dragging in the page: the last frame is our render of the camera the browser reports
         n1 = viewer.frames_sent
         browser.drag(0.5 * W, 0.5 * H, 0.65 * W, 0.45 * H)
-        _wait(lambda: viewer.frames_sent > n1, 20, "a frame after the drag")
+        wait_for(lambda: viewer.frames_sent > n1, 20, "a frame after the drag")
         count = [len(seen), time.monotonic()]
 
         def settled():  # no camera message for 1 s (the orbit controls ease out after the release)
@@ -511,12 +397,12 @@ def test_browser_shows_our_render(viewer, tiny, tmp_path):
                 count[:] = [len(seen), time.monotonic()]
             return time.monotonic() - count[1] > 1.0
 
-        _wait(settled, 20, "the camera to settle")
-        last = _wait(lambda: seen[-1] if viewer.last_frame is not None and _close(viewer.last_frame.camera, seen[-1])
+        wait_for(settled, 20, "the camera to settle")
+        last = wait_for(lambda: seen[-1] if viewer.last_frame is not None and _close(viewer.last_frame.camera, seen[-1])
                      else None, 20, "the frame of the browser's last camera")
         assert not _close(last, target), "the drag did not move the camera"
         ref = upscale_nearest(image_to_uint8(tiny.render(last, viewer.xi).image), W, H)
-        _, img = _wait(matches, 20, "the screenshot after the drag", step=0.2)
+        _, img = wait_for(matches, 20, "the screenshot after the drag", step=0.2)
         print(f"after the drag: PSNR {_psnr(img, ref):.2f} dB")
     finally:
         browser.close()
