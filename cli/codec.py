@@ -239,14 +239,16 @@ def decode(container, res, cameras, out_dir, views, no_render, ply, spz, glb, lo
 
     Rendering on the CPU without an export never imports torch (numpy + the numba kernels, the same results);
     exports, --backend reference|cuda and containers that path does not cover take the torch path."""
-    from ..export import parse_levels
-
     resolutions = parse_resolutions(res)
     exports = {k: v for k, v in (("ply", ply), ("spz", spz), ("glb", glb)) if v}
     exporting = bool(exports or lod)
     if exports and len(resolutions) != 1:
         raise ProxycodecError(f"--ply/--spz/--glb export one resolution; --res gives {len(resolutions)}")
-    lod_levels = parse_levels(levels) if lod else None
+    lod_levels = None
+    if lod:
+        from ..export import parse_levels  # torch: only where an export asks
+
+        lod_levels = parse_levels(levels)
     if lod and bake_view is not None:
         raise ProxycodecError("--bake-view applies to --ply/--spz/--glb, not to --lod")
     t0 = time.perf_counter()

@@ -9,7 +9,7 @@ import os
 from ..errors import ProxycodecError
 from .inria_ply import GaussianPly
 
-__all__ = ["SPLAT_KINDS", "splat_kind", "read_splats"]
+__all__ = ["SPLAT_KINDS", "is_inria_ply", "read_splats", "splat_kind"]
 
 #: What ``splat_kind`` can answer, with the name a user reads.
 SPLAT_KINDS = {"ply": "INRIA 3DGS PLY", "spz": "SPZ", "glb": "glTF GLB (KHR_gaussian_splatting)"}
@@ -35,10 +35,19 @@ def splat_kind(path: str | os.PathLike) -> str | None:
         except (OSError, EOFError):
             return None
     if head[:3] == b"ply":
-        from ..explicit import is_inria_ply
-
         return "ply" if is_inria_ply(path) else None
     return None
+
+
+def is_inria_ply(path: str | os.PathLike) -> bool:
+    """True when ``path`` is a PLY whose header has INRIA 3DGS fields (f_dc_0, opacity, rot_0, no anchor features)."""
+    from .ply import read_ply_header
+
+    try:
+        names = set(read_ply_header(path).names)
+    except (ProxycodecError, OSError):
+        return False
+    return "f_dc_0" in names and "opacity" in names and "rot_0" in names and "f_anchor_feat_0" not in names
 
 
 def _starts_with(path, magic: bytes) -> bool:

@@ -10,6 +10,10 @@
    fitted by regression (``fit_attributes``, no rendering) so that the decoded Gaussians start near the source's:
    opacity (tanh -> the source's sigmoid; free slots -> -0.5), log scale, rotation (1 - <q, q_src>^2) and colour
    (the source's SH colour along random view directions).
+0. **In a canonical frame** (``CanonicalFrame``): the Gaussians and cameras are moved and scaled so that the
+   scene's extent is ``CANONICAL_EXTENT`` about the origin; everything below (voxel, losses, learning rates, views,
+   the near plane) then sees the same numbers whatever the PLY's units, and the result is written back in the PLY's
+   units (``DecoderConfig.length_unit`` keeps it rendering the same there).
 3. **Training against the PLY's own renders**: ``fit``'s trainer (growing and pruning, then stage 2: proxies and the
    residual predictor) on ``distill.TeacherViews`` of the source rendered as plain 3DGS, at random resolutions in
    [0.1, 1] with anti-aliased targets (the teacher's 100% render box-filtered down). Cameras: a ``cameras.json``
@@ -78,6 +82,78 @@ class ConvertConfig:
 
 
 # ================================================================================================ the source
+#: The extent (the 1..99% percentile box's largest side) every conversion works at: about lego's and the built-in
+#: scene's (2.6, 2.35), on which conversion's defaults were measured.
+CANONICAL_EXTENT = 2.5
+
+
+@dataclass(frozen=True)
+class CanonicalFrame:
+    """``world = scale * canonical + center``: where a conversion works, and how its result goes back."""
+
+    center: np.ndarray  # [3] float64
+    scale: float
+
+    @staticmethod
+    def of(ply) -> "CanonicalFrame":
+        """The frame that centres ``ply``'s 1..99% box on the origin and scales its extent to ``CANONICAL_EXTENT``."""
+        g = load_gaussians(ply)
+        return CanonicalFrame(g.center, g.extent / CANONICAL_EXTENT)
+
+    def gaussians_in(self, ply):
+        """A ``GaussianPly`` in this frame (centres moved and scaled, log scales shifted; the rest as is)."""
+        from .formats.inria_ply import GaussianPly
+
+        means = ((ply.means.astype(np.float64) - self.center) / self.scale).astype(np.float32)
+        scales = (ply.scales.astype(np.float64) - math.log(self.scale)).astype(np.float32)
+        return GaussianPly(means, ply.sh, ply.opacities, scales, ply.quats, ply.normals, ply.has_normals)
+
+    def camera_in(self, cam: Camera) -> Camera:
+        """``cam`` (world) in this frame: the same image of the same points."""
+        m = cam.world_to_camera.copy()
+        m[:3, 3] = (m[:3, :3] @ self.center + m[:3, 3]) / self.scale
+        return replace(cam, world_to_camera=m)
+
+    def camera_out(self, cam: Camera) -> Camera:
+        m = cam.world_to_camera.copy()
+        m[:3, 3] = self.scale * m[:3, 3] - m[:3, :3] @ self.center
+        return replace(cam, world_to_camera=m)
+
+    def model_out(self, model: SceneModel) -> SceneModel:
+        """A scene trained in this frame, in world units: positions moved back, every log scaling shifted by
+        log(scale) (offsets are in units of the first three), the decoder's length unit and embedding frame scaled;
+        it renders from world cameras what the canonical scene renders from canonical ones."""
+        s = model.scene
+        c = torch.as_tensor(self.center, dtype=torch.float64)
+        pos = (s.positions.detach().double() * self.scale + c).float()
+        scal = (s.scalings.detach().double() + math.log(self.scale)).float()
+        scene = AnchorScene(pos, s.features.detach(), s.offsets.detach(), scal, float(s.voxel_size * self.scale),
+                            dict(s.metadata)).validate()
+        cfg = model.decoder.config
+        dcfg = replace(cfg, scene_center=tuple(float(v) for v in self.center + self.scale * np.asarray(
+            cfg.scene_center, dtype=np.float64)), scene_radius=float(cfg.scene_radius * self.scale),
+                       length_unit=float(cfg.length_unit * self.scale))
+        from .decoder import GaussianDecoder
+
+        dec = GaussianDecoder.from_arrays(dcfg, model.decoder.state_arrays()).eval()
+        cams = [self.camera_out(c) for c in model.cameras] if model.cameras else model.cameras
+        return SceneModel(scene, dec, cams, model.background, dict(model.meta))
+
+    def result_out(self, res):
+        """``train.FitResult`` in world units: the model, and the stage-2 predictor's distance reference and proxy
+        cell (``fit`` metadata) scaled."""
+        meta = {k: (dict(v) if isinstance(v, dict) else v) for k, v in res.extra_meta.items()}
+        fit_meta = meta.get("fit")
+        if isinstance(fit_meta, dict):
+            if isinstance(fit_meta.get("predictor"), dict) and "dist_ref" in fit_meta["predictor"]:
+                fit_meta["predictor"] = {**fit_meta["predictor"],
+                                         "dist_ref": float(fit_meta["predictor"]["dist_ref"]) * self.scale}
+            if isinstance(fit_meta.get("proxy_cell"), (int, float)):
+                fit_meta["proxy_cell"] = float(fit_meta["proxy_cell"]) * self.scale
+            fit_meta["canonical_frame"] = {"center": [float(v) for v in self.center], "scale": float(self.scale)}
+        return replace(res, model=self.model_out(res.model), extra_meta=meta)
+
+
 @dataclass
 class Gaussians:
     """A 3DGS PLY's Gaussians, activated and made safe to build from (float64 numpy)."""
@@ -89,6 +165,7 @@ class Gaussians:
     quats: np.ndarray  # [N, 4] unit wxyz (zero quaternions -> identity)
     degree: int
     extent: float  # robust size of the scene (the 1..99% percentile box's largest side)
+    center: np.ndarray  # [3] that box's centre
 
 
 def load_gaussians(ply) -> Gaussians:
@@ -109,7 +186,7 @@ def load_gaussians(ply) -> Gaussians:
     q = np.where(qn > 1e-12, q / np.maximum(qn, 1e-300), np.array([1.0, 0.0, 0.0, 0.0]))
     log_s = np.clip(ply.scales.astype(np.float64), math.log(1e-7 * extent), math.log(1e3 * extent))
     alpha = 1.0 / (1.0 + np.exp(-ply.opacities.astype(np.float64)))
-    return Gaussians(means, ply.sh, alpha, np.exp(log_s), q, ply.sh_degree, extent)
+    return Gaussians(means, ply.sh, alpha, np.exp(log_s), q, ply.sh_degree, extent, 0.5 * (lo + hi))
 
 
 def _weights(g: Gaussians) -> np.ndarray:
@@ -373,9 +450,12 @@ def convert(ply_path: str | os.PathLike, out_ply: str | os.PathLike, config: Con
 
     log = log or (lambda s: print(s, file=sys.stderr, flush=True))
     t0 = time.perf_counter()
-    ply, _ = read_splats(ply_path)
+    world_ply, _ = read_splats(ply_path)
+    frame = CanonicalFrame.of(world_ply)
+    ply = frame.gaussians_in(world_ply)  # everything below works in the canonical frame
     g = load_gaussians(ply)
-    log(f"convert: {ply.n_gaussians:,} Gaussians, SH degree {ply.sh_degree}, extent {g.extent:.4g}")
+    log(f"convert: {ply.n_gaussians:,} Gaussians, SH degree {ply.sh_degree}, extent {frame.scale * g.extent:.4g} "
+        f"(worked at {g.extent:.4g})")
     if config.background is None:
         bg, where = ply_background(ply_path)
         config = replace(config, background=bg)
@@ -387,7 +467,7 @@ def convert(ply_path: str | os.PathLike, out_ply: str | os.PathLike, config: Con
     cj = find_cameras_json(ply_path)
     layout = None
     if cj is not None:
-        cams = read_scaffold_cameras(cj)
+        cams = [frame.camera_in(c) for c in read_scaffold_cameras(cj)]
         if config.fit.max_width:
             cams = [c.with_max_width(int(config.fit.max_width)) for c in cams]
         where = f"{cj} ({len(cams)} views)"
@@ -400,15 +480,14 @@ def convert(ply_path: str | os.PathLike, out_ply: str | os.PathLike, config: Con
     start, choice = initial_model(g, replace(config, init_iters=0) if resume else config, cams, log)
     t_init = time.perf_counter() - t0
     res = fit(views, out_ply, config.fit.with_lr_scale(config.lr_scale), dataset_root=str(ply_path), resume=resume,
-              log=log, start=start, stop_after=stop_after)
+              log=log, start=start, stop_after=stop_after, to_save=frame.result_out)
     t_fit = time.perf_counter() - t0 - t_init
-    model = res.model
-    rep = held_out_report(model, views, max_views=report_views, backend=config.fit.backend)
+    rep = held_out_report(res.model, views, max_views=report_views, backend=config.fit.backend)
     src = held_out_report(teacher, views, max_views=report_views, backend=config.fit.backend)
     log(f"converted vs the source's anti-aliased renders (held out): {report_line(rep)}")
     log(f"the source PLY rendered directly, same reference:         {report_line(src)}")
     seconds = {"setup": t_init, "train": res.seconds, "fit_call": t_fit, "total": time.perf_counter() - t0}
-    return ConvertResult(Path(out_ply), model, choice, where, layout, res.iterations, seconds,
+    return ConvertResult(Path(out_ply), frame.model_out(res.model), choice, where, layout, res.iterations, seconds,
                          {"converted": rep, "source_direct": src}, res.history)
 
 

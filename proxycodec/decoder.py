@@ -121,6 +121,7 @@ class GaussianDecoder(nn.Module):
         view = positions - camera_center
         dist = view.norm(dim=1, keepdim=True)
         direction = view / dist.clamp_min(1e-12)
+        dist = dist / cfg.length_unit  # the MLPs' units (exact for 1)
         if cfg.feature_bank:
             f_hat = self.feature_bank(f_hat, direction, dist)
         x = torch.cat([f_hat, direction, dist], -1)

@@ -45,6 +45,7 @@ import torch
 
 from .errors import ProxycodecError
 from .formats.inria_ply import GaussianPly, rgb_to_sh_dc, write_inria_ply
+from .formats.splats import is_inria_ply
 from .loop import (
     ProgressFn, TargetImages, TrainingRun, check_run_length, fmt_time, initial_points, knn_scale, ndc_grad_norm,
     photometric_loss, run_until_done,
@@ -455,17 +456,6 @@ def ply_background(path: str | os.PathLike) -> tuple[tuple[float, float, float],
         if isinstance(white, bool):
             return ((1.0, 1.0, 1.0) if white else (0.0, 0.0, 0.0)), f"{cfg_path} (white_background={white})"
     return PLY_BACKGROUND, "default (black, the 3DGS trainers' default)"
-
-
-def is_inria_ply(path: str | os.PathLike) -> bool:
-    """True when ``path`` is a PLY whose header has INRIA 3DGS fields (f_dc_0, opacity, no anchor features)."""
-    from .formats.ply import read_ply_header
-
-    try:
-        names = set(read_ply_header(path).names)
-    except (ProxycodecError, OSError):
-        return False
-    return "f_dc_0" in names and "opacity" in names and "rot_0" in names and "f_anchor_feat_0" not in names
 
 
 @dataclass

@@ -218,7 +218,7 @@ def bake(model, cfg: BakeConfig = BakeConfig(), *, cameras: list[Camera] | None 
             wm = all_means[slot]
             have_mean[slot] = True
             proj = project_gaussians(g.means, g.quats, g.scales, torch.ones_like(g.opacities), g.colors, cx,
-                                     gate=dec.config.gate, origin=g.origin)
+                                     gate=dec.config.gate, near=dec.config.near_plane(), origin=g.origin)
             shown = torch.zeros(g.count, dtype=torch.bool)
             shown[proj.index] = True
             # Decoded but outside the image: not seen from this view after all.

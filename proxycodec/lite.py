@@ -258,6 +258,7 @@ class Decoder:
         view = positions - camera_center
         dist = _norm(view)
         direction = view / np.maximum(dist, _F32(1e-12))
+        dist = dist / _F32(cfg.length_unit)  # the MLPs' units (exact for 1)
         if self.bank is not None:  # ``GaussianDecoder.feature_bank``
             w = _softmax(_mlp(np.concatenate([direction, dist], -1), self.bank))
             f_hat = (np.tile(f_hat[:, ::4], (1, 4)) * w[:, :1] + np.tile(f_hat[:, ::2], (1, 2)) * w[:, 1:2]
@@ -367,7 +368,7 @@ class LiteScene:
     def decode_view(self, cam: Camera, xi: float) -> tuple[Gaussians, np.ndarray]:
         """``model.decode_view``: the Gaussians of the anchors visible from ``cam`` (already at its render
         resolution), ``anchor_index`` into the whole scene, and the visible anchor indices."""
-        vis = visible_anchors(self.positions, self.extent_radius(), cam)
+        vis = visible_anchors(self.positions, self.extent_radius(), cam, self.decoder.config.near_plane())
         center = np.asarray(cam.center, dtype=_F32)
         g = self.decoder(self.positions[vis], self.features[vis], self.offsets[vis], self.scalings[vis], center, xi)
         g.anchor_index = vis[g.anchor_index]
@@ -377,7 +378,8 @@ class LiteScene:
         """Projection (with the decoder's gate) and compositing of ``g`` into ``cam`` (at its render resolution):
         the numba kernels behind the ``cpu`` backend, so the same Gaussians give the torch path's bits."""
         gate = self.decoder.config.gate
-        k = constants(cam, gate, NEAR, FAR, np.asarray(g.origin, dtype=_F32).astype(np.float64), _F32)
+        k = constants(cam, gate, self.decoder.config.near_plane(), FAR, np.asarray(g.origin, dtype=_F32).astype(np.float64),
+                      _F32)
         c = np.ascontiguousarray
         m2d, con, op, dep, ext, g_val, idx = project_forward(c(g.means), c(g.quats), c(g.scales), c(g.opacities), k,
                                                              bool(gate.enabled))

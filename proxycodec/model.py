@@ -44,7 +44,8 @@ def decode_view(scene: AnchorScene, decoder: GaussianDecoder, camera: Camera, xi
     ``features`` (``offsets``) override the scene's (stage 2 renders leaves with predicted ones). Returns the Gaussians
     (``anchor_index`` into the full scene) and the visible anchor indices.
     """
-    vis = visible_anchors(scene.positions.detach(), scene.extent_radius().detach(), camera)
+    vis = visible_anchors(scene.positions.detach(), scene.extent_radius().detach(), camera,
+                          decoder.config.near_plane())
     feats = scene.features if features is None else features
     offs = scene.offsets if offsets is None else offsets
     _, _, center = camera.torch_params(scene.positions.device, scene.positions.dtype)
@@ -73,7 +74,8 @@ def render_scene(
     g, vis = decode_view(scene, decoder, cam, xi, features, offsets)
     bg = torch.as_tensor(background, dtype=scene.positions.dtype, device=scene.positions.device)
     proj = project(g.means, g.quats, g.scales, g.opacities, g.colors, cam,
-                   gate=decoder.config.gate if gate is None else gate, origin=g.origin, backend=backend)
+                   gate=decoder.config.gate if gate is None else gate, near=decoder.config.near_plane(), origin=g.origin,
+                   backend=backend)
     image, alpha = rasterize(proj, bg, backend)
     return SceneRender(image=image, alpha=alpha, projected=proj, gaussians=g, visible_anchor_index=vis)
 

@@ -14,7 +14,9 @@ from .render.project import GateConfig
 
 EMBEDDINGS = ("film", "additive", "none")
 #: ``DecoderConfig`` fields that describe a Scaffold-GS decoder variant (absent from JSON when at their default).
-VARIANT_FIELDS = ("opacity_dist", "cov_dist", "color_dist", "feature_bank")
+VARIANT_FIELDS = ("opacity_dist", "cov_dist", "color_dist", "feature_bank", "length_unit")
+#: The near plane (scene units at ``length_unit`` 1) below which nothing is drawn.
+NEAR_PLANE = 0.01
 
 
 @dataclass(frozen=True)
@@ -42,6 +44,13 @@ class DecoderConfig:
     #: Hidden width of Scaffold-GS's feature bank (``use_feat_bank``: softmax(MLP([d, delta])) blends the feature
     #: with its channels at strides 4 and 2 tiled to F); 0: no feature bank.
     feature_bank: int = 0
+    #: The scene's length unit relative to the units its MLPs were trained in (``convert`` trains in a canonical
+    #: frame and writes the scene back in the source's units): the MLPs see the view distance divided by it and the
+    #: near plane is ``NEAR_PLANE`` times it, so the scene renders the same in any units. 1 for scenes fitted as is.
+    length_unit: float = 1.0
+
+    def near_plane(self) -> float:
+        return NEAR_PLANE * self.length_unit
 
     def __post_init__(self) -> None:
         if self.embedding not in EMBEDDINGS:
@@ -67,6 +76,9 @@ class DecoderConfig:
         if isinstance(self.feature_bank, bool) or not isinstance(self.feature_bank, int) \
                 or not 0 <= self.feature_bank <= 4096:
             raise ProxycodecError(f"decoder feature_bank = {self.feature_bank!r} is out of range (0..4096)")
+        if isinstance(self.length_unit, bool) or not (isinstance(self.length_unit, (int, float))
+                                                      and math.isfinite(self.length_unit) and self.length_unit > 0):
+            raise ProxycodecError(f"decoder length_unit must be a positive number, got {self.length_unit!r}")
         if self.feature_bank and self.feat_dim % 4:
             raise ProxycodecError(f"a feature bank needs a feature width divisible by 4, got {self.feat_dim}")
 
@@ -78,7 +90,8 @@ class DecoderConfig:
                 "mlp_color": F + 3 + self.color_dist}
 
     def variant(self) -> dict:
-        """The Scaffold-GS variant fields that differ from ours (empty for our own decoder)."""
+        """The fields that differ from a decoder fitted as is (empty for it): Scaffold-GS's variants, and
+        ``length_unit`` of a converted scene. An older reader does not know them, so they raise the scene format."""
         return {k: getattr(self, k) for k in VARIANT_FIELDS
                 if getattr(self, k) != DecoderConfig.__dataclass_fields__[k].default}
 
@@ -102,6 +115,8 @@ class DecoderConfig:
                 raise ProxycodecError("bad decoder configuration: gate kappa and eta must be finite")
             known = {f for f in DecoderConfig.__dataclass_fields__ if f != "gate"}
             kw = {k: v for k, v in d.items() if k in known}
+            if "length_unit" in kw:
+                kw["length_unit"] = float(kw["length_unit"])
             for k in ("scene_center", "film_xi_range"):
                 if k in kw:
                     kw[k] = tuple(float(x) for x in kw[k])

@@ -25,6 +25,7 @@ import shutil
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
@@ -490,7 +491,7 @@ class Trainer(TrainingRun):
             return (None, None, zero) if rounded is None else (*rounded, zero)
         a = self.anchors
         po = self.cfg.predict_offsets
-        vis = visible_anchors(a.positions, a.scene().extent_radius().detach(), cam)
+        vis = visible_anchors(a.positions, a.scene().extent_radius().detach(), cam, self.decoder.config.near_plane())
         leaf_vis = vis[~self.proxy_mask[vis]]
         base_f, base_o = rounded if rounded is not None else (a.features, a.offsets)
         feats, offs = base_f, (base_o if po or rounded is not None else None)
@@ -759,14 +760,16 @@ def save_fitted(result: FitResult, ply_path: str | os.PathLike) -> tuple[Path, P
 # ================================================================================================ the run
 def fit(data, out_ply: str | os.PathLike, config: FitConfig = FitConfig(), *, dataset_root: str = "",
         resume: bool = False, log: ProgressFn | None = None, keep_checkpoint: bool = False,
-        stop_after: int | None = None, start: SceneModel | None = None) -> FitResult:
+        stop_after: int | None = None, start: SceneModel | None = None,
+        to_save: Callable[[FitResult], FitResult] | None = None) -> FitResult:
     """Train on ``data`` (a ``PosedImages``) and write ``out_ply`` (+ weights sidecar) atomically.
 
     ``start``: the scene to start from (``Trainer``'s; ``convert`` starts from anchors made of a 3DGS PLY's
     Gaussians) instead of anchors grown from the dataset's points.
 
     Checkpoints go to ``<out>.ckpt.pxc`` every ``config.checkpoint_every`` seconds and on interrupt/exception, and
-    are removed after success unless ``keep_checkpoint``. ``resume`` continues from that checkpoint.
+    are removed after success unless ``keep_checkpoint``. ``resume`` continues from that checkpoint. ``to_save``:
+    what is written instead of the result (``convert`` writes its canonical-frame result back in world units).
     ``stop_after`` (tests) raises ``KeyboardInterrupt`` after that many iterations of this call.
     """
     log = log or (lambda s: print(s, file=sys.stderr, flush=True))
@@ -798,7 +801,7 @@ def fit(data, out_ply: str | os.PathLike, config: FitConfig = FitConfig(), *, da
             f"xi {st['xi']:.2f}  gauss {st['gaussians']:7d}  anchors {tr.anchors.num_anchors:6d}  "
             f"stage {tr.stage}"), lambda: {"anchors": tr.anchors.num_anchors}, between_steps)
         res = tr.result()
-        save_fitted(res, out_ply)
+        save_fitted(to_save(res) if to_save else res, out_ply)
     except BaseException:
         # Interrupt or error (while training or saving): keep the work, never a partial output.
         with contextlib.suppress(Exception):
