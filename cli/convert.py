@@ -17,6 +17,11 @@ def convert_options(fn):
     for opt in reversed([
         convert_option("--voxel-size", type=float, show_default=True,
                        help="Anchor voxel size in world units (0: chosen from the Gaussians' weight per cell)."),
+        convert_option("--max-anchors", type=click.IntRange(1), default=None,
+                       help="At most this many anchors (default: as many as the Gaussians' weight per cell asks)."),
+        convert_option("--target-size", type=click.IntRange(1), default=None,
+                       help="Aim the container at about this many bytes (sets the anchor budget; measured in "
+                            "benchmarks/README.md, 'Anchor budgets')."),
         convert_option("--views", "views", type=int, show_default=True,
                        help="Automatic teacher views when no cameras.json sits beside the PLY."),
         convert_option("--view-size", type=int, show_default=True, help="Their width and height in pixels."),
@@ -29,10 +34,12 @@ def convert_options(fn):
     return fn
 
 
-def make_config(iters, time_budget, seed, voxel_size, views, view_size, background, max_width):
+def make_config(iters, time_budget, seed, voxel_size, views, view_size, background, max_width, max_anchors=None,
+                target_size=None):
     from ..convert import ConvertConfig, replace_fit
 
-    cfg = ConvertConfig(voxel_size=voxel_size, views=views, view_size=view_size, background=background)
+    cfg = ConvertConfig(voxel_size=voxel_size, views=views, view_size=view_size, background=background,
+                        max_anchors=max_anchors, target_size=target_size)
     run = {"max_width": max_width, "seed": seed}
     if iters is not None or time_budget is not None:
         run.update(iters=iters, time_budget=time_budget)
@@ -50,8 +57,8 @@ def make_config(iters, time_budget, seed, voxel_size, views, view_size, backgrou
 @click.option("--resume", is_flag=True, help="Continue from OUT's checkpoint (OUT.ckpt.pxc).")
 @click.option("--json", "as_json", is_flag=True, help="Print the conversion report as JSON on stdout.")
 @user_errors
-def convert(ply, out, iters, time_budget, seed, voxel_size, views, view_size, background, max_width, resume,
-            as_json) -> None:
+def convert(ply, out, iters, time_budget, seed, voxel_size, max_anchors, target_size, views, view_size, background,
+            max_width, resume, as_json) -> None:
     """Turn an INRIA 3DGS PLY (SH degree 0..3; the reference trainer's, splatfacto's, an app's export) into a
     resolution-aware anchor scene, trained against the PLY's own renders: no images needed. Writes OUT (anchor PLY)
     and OUT.weights.pxc (MLPs, proxies and their stage-2 predictor: `encode OUT` uses them as they are); OUT.ckpt.pxc
@@ -62,7 +69,8 @@ def convert(ply, out, iters, time_budget, seed, voxel_size, views, view_size, ba
     compresses the result (or `proxycodec encode PLY` does both)."""
     from ..convert import convert as run
 
-    cfg = make_config(iters, time_budget, seed, voxel_size, views, view_size, background, max_width)
+    cfg = make_config(iters, time_budget, seed, voxel_size, views, view_size, background, max_width, max_anchors,
+                      target_size)
     r = run(ply, out, cfg, resume=resume, log=lambda m: click.echo(m, err=True))
     if as_json:
         click.echo(json.dumps(r.to_json(), indent=2))

@@ -3,7 +3,9 @@
 1. **Anchors from a voxel grid over the Gaussians** (``choose_voxel``): every Gaussian falls in the cell
    ``round(mu / v)``; an anchor sits at each occupied cell's centre (Scaffold-GS's rule). The automatic ``v`` is the
    largest voxel (on a 2^(1/8) grid) at which the K = 10 heaviest Gaussians of each cell (weight: opacity x the area
-   of the two largest axes) hold ``keep`` (90%) of all the weight, and the anchors stay under ``max_anchors``.
+   of the two largest axes) hold ``keep`` (90%) of all the weight: the anchor count follows the scene's density and
+   scales. A budget is optional: ``max_anchors``, or ``target_size`` (container bytes, turned into anchors by
+   ``anchors_for_size``); under a budget the voxel is the smallest that keeps within it.
 2. **Each anchor starts from its cell's Gaussians** (``anchors_from_gaussians``): the K heaviest become its K
    offsets (``(mu - anchor) / v``, ``scaling[0:3] = log v``), ``scaling[3:6]`` is log(2 x the largest axis among
    them); free slots sit at the centre and start invisible. The features and the decoder's three MLPs are then
@@ -57,10 +59,10 @@ class ConvertConfig:
                                                              xi_full_share=0.0, lambda_rate=0.0))
     voxel_size: float = 0.0  # <= 0: automatic (choose_voxel)
     keep: float = 0.9  # automatic voxel: share of the Gaussians' weight the anchors' K slots must hold
-    # automatic voxel: at most this many anchors. [D] Bytes: a stored anchor costs ~45 B in the container; lego's
-    # 129k-Gaussian PLY at the 90% rule would start with 27k anchors (~1.2 MB), at this cap 10.9k, trained to 32.4 dB
-    # against its renders (SPEC.md section 11)
-    max_anchors: int = 12_000
+    # automatic voxel: at most this many anchors (None: as many as the keep rule asks; SPEC.md section 11)
+    max_anchors: int | None = None
+    # automatic voxel: the anchors a container of about this many bytes holds (``anchors_for_size``); None: no budget
+    target_size: int | None = None
     init_iters: int = 400  # regression steps of fit_attributes
     views: int = 64  # automatic teacher views when the PLY has no cameras.json
     view_size: int = 400  # their width and height
@@ -74,8 +76,18 @@ class ConvertConfig:
             raise ProxycodecError(f"keep must be in (0, 1], got {self.keep}")
         if not (math.isfinite(self.voxel_size) and self.voxel_size >= 0):
             raise ProxycodecError(f"voxel size must be a finite number >= 0 (0: automatic), got {self.voxel_size}")
-        if self.max_anchors < 1 or self.init_iters < 0 or self.views < 2 or self.view_size < 8:
+        if (self.max_anchors is not None and self.max_anchors < 1) or self.init_iters < 0 or self.views < 2 \
+                or self.view_size < 8:
             raise ProxycodecError("max_anchors >= 1, init_iters >= 0, views >= 2 and view_size >= 8 are required")
+        if self.target_size is not None and self.target_size < CONTAINER_BASE_BYTES + CONTAINER_ANCHOR_BYTES:
+            raise ProxycodecError(f"a target size below {CONTAINER_BASE_BYTES + CONTAINER_ANCHOR_BYTES:,} B holds no "
+                                  f"anchor (the weights alone take ~{CONTAINER_BASE_BYTES:,} B)")
+
+    def anchor_budget(self) -> int | None:
+        """The most anchors the automatic voxel may make: ``max_anchors``, ``target_size``'s, the smaller of both."""
+        caps = [c for c in (self.max_anchors, anchors_for_size(self.target_size) if self.target_size else None)
+                if c is not None]
+        return min(caps) if caps else None
         if self.background is not None and (len(self.background) != 3 or not all(
                 0.0 <= b <= 1.0 for b in self.background)):
             raise ProxycodecError(f"background must be 3 numbers in [0, 1], got {self.background}")
@@ -210,9 +222,33 @@ class VoxelChoice:
                 f"keep {self.kept_gaussians:,} Gaussians, {100 * self.kept_weight:.1f}% of the weight")
 
 
+#: A converted container's bytes ~ CONTAINER_BASE_BYTES + CONTAINER_ANCHOR_BYTES x anchors (``target_size``):
+#: measured on the converted built-in scene's containers (benchmarks/README.md, "Anchor budgets").
+CONTAINER_BASE_BYTES = 57_000
+CONTAINER_ANCHOR_BYTES = 43.0
+
+
+def anchors_for_size(target_bytes: int) -> int:
+    """The anchors a converted container of ``target_bytes`` holds, by the linear model above."""
+    return max(1, int((target_bytes - CONTAINER_BASE_BYTES) / CONTAINER_ANCHOR_BYTES))
+
+
 def _cells(means: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:
-    """-> (unique cells [M, 3] int64, cell index of each point [N])."""
+    """-> (unique cells [M, 3] int64, cell index of each point [N]), sorted as ``np.unique(axis=0)`` sorts them.
+
+    Sparse voxel hashing: the three cell indices packed into one int64 key (a 1-D unique, several times faster
+    than the row-wise one and O(N) memory) where their ranges fit in 63 bits; else row-wise."""
     cells = np.round(means / voxel).astype(np.int64)
+    lo = cells.min(0)
+    span = cells.max(0) - lo + 1
+    if float(span[0]) * float(span[1]) * float(span[2]) < 2.0 ** 62:
+        c = cells - lo
+        key = (c[:, 0] * span[1] + c[:, 1]) * span[2] + c[:, 2]
+        ukey, inv = np.unique(key, return_inverse=True)
+        z = ukey % span[2]
+        y = (ukey // span[2]) % span[1]
+        x = ukey // (span[1] * span[2])
+        return np.stack([x, y, z], 1) + lo, inv.reshape(-1)
     uniq, inv = np.unique(cells, axis=0, return_inverse=True)
     return uniq, inv.reshape(-1)
 
@@ -233,25 +269,43 @@ def _kept(means, weight, voxel, K) -> tuple[int, int, float]:
     return len(uniq), int(keep.sum()), float(weight[order][keep].sum() / weight.sum())
 
 
+#: The automatic voxel's grid: extent / 16 x 2^(-i/8), i = 0..64 (down to extent / 4096).
+VOXEL_STEPS = 64
+
+
 def choose_voxel(g: Gaussians, K: int, cfg: ConvertConfig) -> VoxelChoice:
-    """The anchors' voxel: ``cfg.voxel_size``, or the largest on a 2^(1/8) grid between extent/4096 and extent/16
-    whose cells' K heaviest Gaussians keep ``cfg.keep`` of the weight with at most ``cfg.max_anchors`` anchors (the
-    smallest voxel within the anchor cap when no voxel keeps that much)."""
+    """The anchors' voxel: ``cfg.voxel_size``, or the largest on a 2^(1/8) grid between extent/16 and extent/4096
+    whose cells' K heaviest Gaussians keep ``cfg.keep`` of the weight (the finest when none does); under a budget
+    (``cfg.anchor_budget()``) no finer than the finest within it. Bisection on the grid: the kept share grows and
+    the anchor count grows as the voxel shrinks (O(N log N) per probe, ~2 log2(64) probes)."""
     w = _weights(g)
     if cfg.voxel_size > 0:
         M, kept, share = _kept(g.means, w, cfg.voxel_size, K)
         return VoxelChoice(cfg.voxel_size, M, kept, share, False)
-    best = None
-    v = g.extent / 16.0
-    while v >= g.extent / 4096.0:
-        choice = VoxelChoice(v, *_kept(g.means, w, v, K), True)
-        if choice.anchors > cfg.max_anchors:
-            return best or choice  # even the coarsest voxel makes too many anchors: the coarsest
-        best = choice
-        if choice.kept_weight >= cfg.keep:
-            return best
-        v /= 2.0 ** 0.125
-    return best
+    cache: dict[int, VoxelChoice] = {}
+
+    def at(i: int) -> VoxelChoice:
+        if i not in cache:
+            v = g.extent / 16.0 * 2.0 ** (-i / 8.0)
+            cache[i] = VoxelChoice(v, *_kept(g.means, w, v, K), True)
+        return cache[i]
+
+    def first(pred, lo: int, hi: int) -> int:
+        """The smallest i in [lo, hi] with pred(at(i)), assuming pred is monotone (False ... True); hi if none."""
+        while lo < hi:
+            mid = (lo + hi) // 2
+            if pred(at(mid)):
+                hi = mid
+            else:
+                lo = mid + 1
+        return lo
+
+    i = first(lambda c: c.kept_weight >= cfg.keep, 0, VOXEL_STEPS)
+    budget = cfg.anchor_budget()
+    if budget is not None and at(i).anchors > budget:
+        j = first(lambda c: c.anchors > budget, 0, i) - 1  # the finest voxel within the budget
+        i = max(j, 0)
+    return at(i)
 
 
 # ================================================================================================ the initial anchors
@@ -414,15 +468,20 @@ class ConvertResult:
                 "report": self.report}
 
 
-def initial_model(g: Gaussians, cfg: ConvertConfig, cameras: list[Camera], log: ProgressFn) -> tuple[SceneModel,
-                                                                                                    VoxelChoice]:
-    """The anchor scene a conversion starts from: voxel, anchors, decoder and features fitted to the Gaussians."""
+def initial_model(g: Gaussians, cfg: ConvertConfig, cameras: list[Camera], log: ProgressFn,
+                  seconds: dict | None = None) -> tuple[SceneModel, VoxelChoice]:
+    """The anchor scene a conversion starts from: voxel, anchors, decoder and features fitted to the Gaussians.
+    ``seconds`` (optional) receives each step's time: ``voxel``, ``anchors``, ``initial_fit``."""
     from .decoder import GaussianDecoder
 
+    seconds = {} if seconds is None else seconds
     fc = cfg.fit
+    t = time.perf_counter()
     choice = choose_voxel(g, fc.n_offsets, cfg)
-    log(choice.describe())
+    seconds["voxel"] = time.perf_counter() - t
+    t = time.perf_counter()
     scene, targets = anchors_from_gaussians(g, choice.voxel, fc.n_offsets, fc.feat_dim)
+    seconds["anchors"] = time.perf_counter() - t
     b = scene.bounds()
     center = 0.5 * (b[0] + b[1])
     radius = max(0.5 * float(np.linalg.norm(b[1] - b[0])), 1e-6)
@@ -430,7 +489,9 @@ def initial_model(g: Gaussians, cfg: ConvertConfig, cameras: list[Camera], log: 
     dec = GaussianDecoder(fc.decoder_config(center, radius))
     cam_c = np.array([c.center for c in cameras])
     dist = float(np.median(np.linalg.norm(cam_c - center, axis=1))) if len(cam_c) else radius
+    t = time.perf_counter()
     scene = fit_attributes(scene, dec, targets, g.degree, dist, cfg.init_iters, fc.seed, log)
+    seconds["initial_fit"] = time.perf_counter() - t
     from .explicit import PLY_BACKGROUND
 
     return SceneModel(scene, dec.eval(), list(cameras), tuple(cfg.background or PLY_BACKGROUND)), choice
@@ -451,8 +512,10 @@ def convert(ply_path: str | os.PathLike, out_ply: str | os.PathLike, config: Con
     log = log or (lambda s: print(s, file=sys.stderr, flush=True))
     t0 = time.perf_counter()
     world_ply, _ = read_splats(ply_path)
+    stages = {"read": time.perf_counter() - t0}
     frame = CanonicalFrame.of(world_ply)
     ply = frame.gaussians_in(world_ply)  # everything below works in the canonical frame
+    del world_ply
     g = load_gaussians(ply)
     log(f"convert: {ply.n_gaussians:,} Gaussians, SH degree {ply.sh_degree}, extent {frame.scale * g.extent:.4g} "
         f"(worked at {g.extent:.4g})")
@@ -477,16 +540,22 @@ def convert(ply_path: str | os.PathLike, out_ply: str | os.PathLike, config: Con
     log(f"teacher views: {where}")
     views = TeacherViews(teacher, cams, backend=config.fit.backend)
     # resuming: the checkpoint replaces the start's features and decoder, so they are not fitted again
-    start, choice = initial_model(g, replace(config, init_iters=0) if resume else config, cams, log)
+    work = replace(config, voxel_size=config.voxel_size / frame.scale)  # a given voxel: world units -> canonical
+    start, choice = initial_model(g, replace(work, init_iters=0) if resume else work, cams, log, stages)
+    choice = replace(choice, voxel=choice.voxel * frame.scale)
+    log(choice.describe() + (f" (budget {config.anchor_budget():,} anchors)" if config.anchor_budget() else ""))
     t_init = time.perf_counter() - t0
-    res = fit(views, out_ply, config.fit.with_lr_scale(config.lr_scale), dataset_root=str(ply_path), resume=resume,
+    fit_cfg = config.fit.with_lr_scale(config.lr_scale)
+    if config.anchor_budget() is not None:  # growing keeps within the budget too
+        fit_cfg = replace(fit_cfg, max_anchors=min(fit_cfg.max_anchors, config.anchor_budget()))
+    res = fit(views, out_ply, fit_cfg, dataset_root=str(ply_path), resume=resume,
               log=log, start=start, stop_after=stop_after, to_save=frame.result_out)
     t_fit = time.perf_counter() - t0 - t_init
     rep = held_out_report(res.model, views, max_views=report_views, backend=config.fit.backend)
     src = held_out_report(teacher, views, max_views=report_views, backend=config.fit.backend)
     log(f"converted vs the source's anti-aliased renders (held out): {report_line(rep)}")
     log(f"the source PLY rendered directly, same reference:         {report_line(src)}")
-    seconds = {"setup": t_init, "train": res.seconds, "fit_call": t_fit, "total": time.perf_counter() - t0}
+    seconds = {**stages, "setup": t_init, "train": res.seconds, "fit_call": t_fit, "total": time.perf_counter() - t0}
     return ConvertResult(Path(out_ply), frame.model_out(res.model), choice, where, layout, res.iterations, seconds,
                          {"converted": rep, "source_direct": src}, res.history)
 

@@ -67,12 +67,35 @@ def test_the_automatic_voxel_keeps_the_weight_it_promises_and_is_the_largest_tha
     g = load_gaussians(_ball(20000))  # dense: the coarsest voxel (extent / 16) keeps too little
     cfg = ConvertConfig(keep=0.9)
     c = choose_voxel(g, 10, cfg)
-    assert c.automatic and c.kept_weight >= 0.9 and c.anchors <= cfg.max_anchors and c.voxel < g.extent / 16
+    assert c.automatic and c.kept_weight >= 0.9 and c.voxel < g.extent / 16
     coarser = choose_voxel(g, 10, ConvertConfig(voxel_size=c.voxel * 2 ** 0.125))
     assert coarser.kept_weight < 0.9
-    capped = choose_voxel(g, 10, ConvertConfig(keep=1.0, max_anchors=2000))  # the cap binds first
+    # the anchors follow the scene: no cap by default (the same sphere twice as dense asks for more anchors)
+    denser = choose_voxel(load_gaussians(_ball(80000)), 10, cfg)
+    assert denser.kept_weight >= 0.9 and denser.anchors > c.anchors
+    capped = choose_voxel(g, 10, ConvertConfig(keep=1.0, max_anchors=2000))  # the budget binds first
     assert capped.anchors <= 2000 and capped.kept_weight < 1.0
     assert choose_voxel(g, 10, ConvertConfig(voxel_size=capped.voxel / 2 ** 0.125)).anchors > 2000
+    from proxycodec.convert import CONTAINER_ANCHOR_BYTES, CONTAINER_BASE_BYTES, anchors_for_size
+
+    size = int(CONTAINER_BASE_BYTES + 1500 * CONTAINER_ANCHOR_BYTES) + 1
+    assert anchors_for_size(size) == 1500
+    sized = choose_voxel(g, 10, ConvertConfig(keep=1.0, target_size=size))
+    assert sized.anchors <= 1500 and choose_voxel(g, 10, ConvertConfig(voxel_size=sized.voxel / 2 ** 0.125)).anchors \
+        > 1500
+    with pytest.raises(ProxycodecError, match="holds no anchor"):
+        ConvertConfig(target_size=1000)
+
+
+def test_voxel_hashing_equals_row_wise_unique():
+    from proxycodec.convert import _cells
+
+    rng = np.random.default_rng(3)
+    pts = np.concatenate([rng.normal(size=(5000, 3)), [[1e6, -1e6, 3.0]]])  # a far floater: a wide key range
+    for v, p in ((0.05, pts[:-1]), (0.05, pts), (1e-9, pts)):  # the last one overflows 63 bits: row-wise
+        u, inv = _cells(p, v)
+        u2, inv2 = np.unique(np.round(p / v).astype(np.int64), axis=0, return_inverse=True)
+        assert np.array_equal(u, u2) and np.array_equal(inv, inv2.reshape(-1))
 
 
 def test_the_fitted_start_decodes_near_the_source_gaussians():
