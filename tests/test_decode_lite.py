@@ -53,6 +53,8 @@ VARIANTS = {
     "additive_f32_predicted_offsets": ({"embedding": "additive"}, {"weights_dtype": "f32", "predict_offsets": True}),
     "none_f16_no_gate_float_bits": ({"embedding": "none", "gate": GateConfig(enabled=False)},
                                     {"weights_dtype": "f16", "feature_bits": 32, "scaling_bits": 12}),
+    # a converted scene's length unit: the MLPs' distance input and the near plane scale with it
+    "film_length_unit": ({"length_unit": 0.37}, {}),
 }
 
 
