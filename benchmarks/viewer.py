@@ -93,7 +93,7 @@ def main(argv=None) -> int:
                 cam0 = torch_model.cameras[0] if torch_model.cameras else v.initial_camera
                 wait_for(lambda: np.abs(v.last_frame.camera.world_to_camera - cam0.world_to_camera).max() < 1e-6,
                          60, "a frame of the first camera")
-                browser.eval(ONLY_THE_CANVAS)
+                browser.evaluate(ONLY_THE_CANVAS)
                 for xi in (float(x) for x in args.res.split(",")):
                     n = v.frames_sent if v.xi != xi else -1  # at the slider's value already: the last frame
                     v._gui["res"].value = xi  # the slider, as a user moves it

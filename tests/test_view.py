@@ -345,7 +345,7 @@ def test_browser_shows_our_render(viewer, tiny, tmp_path):
         set_client_camera(client, target, CENTER)
         wait_for(lambda: any(_close(c, target) for c in seen), 20, "the browser to report the new camera")
         ref = upscale_nearest(image_to_uint8(tiny.render(target, viewer.xi).image), W, H)
-        browser.eval(ONLY_THE_CANVAS)
+        browser.evaluate(ONLY_THE_CANVAS)
 
         previous = [None]
 
@@ -361,12 +361,12 @@ def test_browser_shows_our_render(viewer, tiny, tmp_path):
         shutil.copyfile(shot, "/tmp/view_screenshot.png")
         print(f"screenshot {shot} (and /tmp/view_screenshot.png): PSNR {psnr:.2f} dB against our render "
               f"(max |diff| {int(np.abs(img.astype(int) - ref.astype(int)).max())})")
-        browser.eval("document.getElementById('only-the-canvas').remove()")  # the page as a user sees it
+        browser.evaluate("document.getElementById('only-the-canvas').remove()")  # the page as a user sees it
         time.sleep(0.5)
         raw_gui, _ = browser.screenshot()
         (tmp_path / "view_screenshot_gui.png").write_bytes(raw_gui)
         shutil.copyfile(tmp_path / "view_screenshot_gui.png", "/tmp/view_screenshot_gui.png")
-        browser.eval(ONLY_THE_CANVAS)
+        browser.evaluate(ONLY_THE_CANVAS)
 
         # 2. a viser object where our camera projects a point: the same pixel in the browser's own 3D rendering
         ref = ref.astype(int)

@@ -76,7 +76,7 @@ class DevTools:
                     raise RuntimeError(f"{method}: {msg['error']}")
                 return msg["result"]
 
-    def eval(self, expr: str):
+    def evaluate(self, expr: str):
         return self.call("Runtime.evaluate", expression=expr, returnByValue=True)["result"].get("value")
 
     def screenshot(self) -> tuple[bytes, np.ndarray]:
