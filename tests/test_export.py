@@ -23,7 +23,6 @@ from proxycodec.export import (
 )
 from proxycodec.formats.inria_ply import read_inria_ply
 from proxycodec.model import apply_gate_mode
-from proxycodec.render.project import project_gaussians
 from tests.test_codec import tiny_model
 
 
