@@ -242,6 +242,8 @@ def decode(container, res, cameras, out_dir, views, no_render, ply, spz, glb, lo
 
     Rendering on the CPU without an export never imports torch (numpy + the numba kernels, the same results);
     exports, --backend reference|cuda and containers that path does not cover take the torch path."""
+    from ..scenes import decode_torch_free
+
     resolutions = parse_resolutions(res)
     exports = {k: v for k, v in (("ply", ply), ("spz", spz), ("glb", glb)) if v}
     exporting = bool(exports or lod)
@@ -255,7 +257,7 @@ def decode(container, res, cameras, out_dir, views, no_render, ply, spz, glb, lo
     if lod and bake_view is not None:
         raise ProxycodecError("--bake-view applies to --ply/--spz/--glb, not to --lod")
     t0 = time.perf_counter()
-    lite = _decode_lite(container) if backend in ("auto", "cpu") and not exporting else None
+    lite = decode_torch_free(container) if backend in ("auto", "cpu") and not exporting else None
     if lite is not None:
         from ..lite import default_cameras
 
@@ -278,7 +280,7 @@ def decode(container, res, cameras, out_dir, views, no_render, ply, spz, glb, lo
 
 def _export(model, container, exports: dict, xi: float, lod, levels, lod_format: str, sh_degree: int,
             bake_view) -> None:
-    from ..export import BakeConfig, bake, write_gaussians, write_lod
+    from ..export import LOD_MANIFEST, BakeConfig, bake, write_gaussians, write_lod
 
     if exports:
         t = time.perf_counter()
@@ -294,21 +296,8 @@ def _export(model, container, exports: dict, xi: float, lod, levels, lod_format:
     if lod:
         m = write_lod(model, lod, levels, fmt=lod_format, sh_degree=sh_degree, source=Path(container).name,
                       log=_stderr)
-        click.echo(f"wrote {Path(lod) / 'lod.json'}: {m['lodLevels']} levels, "
+        click.echo(f"wrote {Path(lod) / LOD_MANIFEST}: {m['lodLevels']} levels, "
                    + ", ".join(f"{e['resolution']:g}: {e['count']} Gaussians {e['bytes']} B" for e in m["levels"]))
-
-
-def _decode_lite(container):
-    """The container decoded by the torch-free path, or None where that path does not apply (no numba; a leaf
-    predictor it does not implement): the caller then takes the torch path. Malformed files raise as there."""
-    try:
-        from .. import lite
-    except ImportError:  # numba missing: the torch path renders with the reference backend
-        return None
-    try:
-        return lite.decode(container)
-    except lite.Unsupported:
-        return None
 
 
 @click.command()

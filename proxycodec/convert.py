@@ -109,8 +109,8 @@ class CanonicalFrame:
     @staticmethod
     def of(ply) -> "CanonicalFrame":
         """The frame that centres ``ply``'s 1..99% box on the origin and scales its extent to ``CANONICAL_EXTENT``."""
-        g = load_gaussians(ply)
-        return CanonicalFrame(g.center, g.extent / CANONICAL_EXTENT)
+        center, extent = robust_box(ply.means)
+        return CanonicalFrame(center, extent / CANONICAL_EXTENT)
 
     def gaussians_in(self, ply):
         """A ``GaussianPly`` in this frame (centres moved and scaled, log scales shifted; the rest as is)."""
@@ -177,28 +177,36 @@ class Gaussians:
     quats: np.ndarray  # [N, 4] unit wxyz (zero quaternions -> identity)
     degree: int
     extent: float  # robust size of the scene (the 1..99% percentile box's largest side)
-    center: np.ndarray  # [3] that box's centre
 
 
-def load_gaussians(ply) -> Gaussians:
-    """``formats.inria_ply.GaussianPly`` -> ``Gaussians``; a PLY with no Gaussians, or whose Gaussians all sit in one
-    point, is refused (there is nothing to place anchors on)."""
-    n = ply.n_gaussians
+def robust_box(means: np.ndarray) -> tuple[np.ndarray, float]:
+    """(centre, extent) of the centres' 1..99th percentile box (all of them below 100 Gaussians), the extent its
+    largest side (the whole box's where that is 0); no centres, or all in one point, are refused (there is nothing
+    to place anchors on)."""
+    n = len(means)
     if n == 0:
         raise ProxycodecError("the PLY holds no Gaussians; nothing to convert")
-    means = ply.means.astype(np.float64)
+    means = means.astype(np.float64)
     lo, hi = np.percentile(means, [1, 99], axis=0) if n >= 100 else (means.min(0), means.max(0))
     extent = float((hi - lo).max())
     if not extent > 0:
         extent = float((means.max(0) - means.min(0)).max())
     if not extent > 0:
         raise ProxycodecError(f"all {n} Gaussians sit in one point; there is no scene to place anchors on")
+    return 0.5 * (lo + hi), extent
+
+
+def load_gaussians(ply) -> Gaussians:
+    """``formats.inria_ply.GaussianPly`` -> ``Gaussians`` (``robust_box`` gives the extent and refuses empty or
+    one-point PLYs)."""
+    _, extent = robust_box(ply.means)
+    means = ply.means.astype(np.float64)
     q = ply.quats.astype(np.float64)
     qn = np.linalg.norm(q, axis=1, keepdims=True)
     q = np.where(qn > 1e-12, q / np.maximum(qn, 1e-300), np.array([1.0, 0.0, 0.0, 0.0]))
     log_s = np.clip(ply.scales.astype(np.float64), math.log(1e-7 * extent), math.log(1e3 * extent))
     alpha = 1.0 / (1.0 + np.exp(-ply.opacities.astype(np.float64)))
-    return Gaussians(means, ply.sh, alpha, np.exp(log_s), q, ply.sh_degree, extent, 0.5 * (lo + hi))
+    return Gaussians(means, ply.sh, alpha, np.exp(log_s), q, ply.sh_degree, extent)
 
 
 def _weights(g: Gaussians) -> np.ndarray:

@@ -36,7 +36,7 @@ import torch
 
 from .camera import Camera, check_xi
 from .errors import ProxycodecError
-from .formats.inria_ply import GaussianPly
+from .formats.inria_ply import SH_C0, GaussianPly
 
 #: Opacity below which a baked Gaussian is left out (the compositor's skip threshold).
 MIN_OPACITY = 1.0 / 255.0
@@ -150,7 +150,7 @@ ENOUGH_CAMERAS, FEW_CAMERAS_DIRECTIONS = 8, 32
 def bake_cameras(model, directions: int | None = None) -> list[Camera]:
     """The views a bake decodes: the stored cameras, then ``directions`` sphere views (None: none when at least
     ``ENOUGH_CAMERAS`` are stored, else ``FEW_CAMERAS_DIRECTIONS``). Why: on lego's container (16 stored cameras)
-    held-out PSNR is 35.58 / 35.05 / 34.67 dB with 0 / 16 / 64 sphere views added (SPEC section 3)."""
+    held-out PSNR is 35.58 / 35.05 / 34.67 dB with 0 / 16 / 64 sphere views added (SPEC section 13)."""
     stored = list(model.cameras or [])
     if directions is None:
         directions = 0 if len(stored) >= ENOUGH_CAMERAS else FEW_CAMERAS_DIRECTIONS
@@ -190,7 +190,6 @@ def bake(model, cfg: BakeConfig = BakeConfig(), *, cameras: list[Camera] | None 
     if not views:
         raise ProxycodecError("no views to decode the scene from")
     seen = torch.zeros(S, dtype=torch.float64)
-    op_sum = torch.zeros(S, dtype=torch.float64)
     w_sum = torch.zeros(S, dtype=torch.float64)
     ls_sum = torch.zeros(S, 3, dtype=torch.float64)
     q_sum = torch.zeros(S, 4, dtype=torch.float64)
@@ -202,7 +201,6 @@ def bake(model, cfg: BakeConfig = BakeConfig(), *, cameras: list[Camera] | None 
     # Centres do not depend on the view: x_v + O_k exp(l[0:3]), in float64.
     all_means = (s.positions.detach().double()[:, None, :] + s.offsets.detach().double()
                  * torch.exp(s.scalings.detach().double()[:, None, :3])).reshape(S, 3)
-    have_mean = torch.zeros(S, dtype=torch.bool)
     view_cam = model.cameras[cfg.view] if cfg.view is not None else None
     if view_cam is not None and view_cam not in views:
         views = views + [view_cam]
@@ -215,8 +213,6 @@ def bake(model, cfg: BakeConfig = BakeConfig(), *, cameras: list[Camera] | None 
             if g.count == 0:
                 continue
             slot = g.anchor_index * K + g.slot
-            wm = all_means[slot]
-            have_mean[slot] = True
             proj = project_gaussians(g.means, g.quats, g.scales, torch.ones_like(g.opacities), g.colors, cx,
                                      gate=dec.config.gate, near=dec.config.near_plane(), origin=g.origin)
             shown = torch.zeros(g.count, dtype=torch.bool)
@@ -226,7 +222,6 @@ def bake(model, cfg: BakeConfig = BakeConfig(), *, cameras: list[Camera] | None 
             i = proj.index
             si = slot[i]
             w = (g.opacities[i] * proj.gate).double()
-            op_sum.index_add_(0, si, w)
             w_sum.index_add_(0, si, w)
             ls_sum.index_add_(0, si, w[:, None] * torch.log(g.scales[i].double().clamp_min(1e-30)))
             q = g.quats[i].double()
@@ -239,14 +234,15 @@ def bake(model, cfg: BakeConfig = BakeConfig(), *, cameras: list[Camera] | None 
             c = g.colors[i].double()
             if cam is view_cam:
                 baked_dc[si] = c
-            d = wm[i] - torch.as_tensor(cam.center, dtype=torch.float64)
+            d = all_means[si] - torch.as_tensor(cam.center, dtype=torch.float64)
             d = d / d.norm(dim=1, keepdim=True).clamp_min(1e-12)
             Y = _sh_basis(degree, d)
             A.index_add_(0, si, w[:, None, None] * Y[:, :, None] * Y[:, None, :])
             b.index_add_(0, si, w[:, None, None] * Y[:, :, None] * (c - 0.5)[:, None, :])
 
-    opacity = torch.where(seen > 0, op_sum / seen.clamp_min(1), torch.zeros_like(op_sum))
-    keep = (opacity >= cfg.min_opacity) & (w_sum > 0) & have_mean
+    # mean gated opacity over the views that see it (w_sum: the sum of o * g, > 0 exactly where it was shown)
+    opacity = torch.where(seen > 0, w_sum / seen.clamp_min(1), torch.zeros_like(w_sum))
+    keep = (opacity >= cfg.min_opacity) & (w_sum > 0)
     idx = keep.nonzero().squeeze(1)
     ws = w_sum[idx]
     reg = torch.full((nc,), cfg.ridge, dtype=torch.float64)
@@ -255,10 +251,9 @@ def bake(model, cfg: BakeConfig = BakeConfig(), *, cameras: list[Camera] | None 
     coef = torch.linalg.solve(Ak, b[idx])  # [n, nc, 3]
     # SH coefficients as 3DGS stores them: colour = Y . coef + 0.5, with Y[0] = C0.
     if cfg.view is not None:  # that camera's colours where it sees the Gaussian, the fitted DC elsewhere
-        c0 = float(_sh_basis(0, torch.zeros(1, 3, dtype=torch.float64))[0, 0])
         dc = baked_dc[idx]
-        dc = torch.where(torch.isnan(dc), coef[:, 0, :] * c0 + 0.5, dc)
-        coef = ((dc - 0.5) / c0)[:, None, :]
+        dc = torch.where(torch.isnan(dc), coef[:, 0, :] * SH_C0 + 0.5, dc)
+        coef = ((dc - 0.5) / SH_C0)[:, None, :]
     q = q_sum[idx]
     qn = q.norm(dim=1, keepdim=True)
     q = torch.where(qn > 1e-12, q / qn.clamp_min(1e-12), torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=torch.float64))
@@ -307,7 +302,7 @@ def write_gaussians(path: str | os.PathLike, ply: GaussianPly, fmt: str | None =
     """Write ``ply`` as a 3DGS PLY, an SPZ or a GLB (``fmt``, else the suffix); returns the file's bytes.
 
     SPZ's anti-aliased flag and the GLB's are left off: the coverage gate is baked into the opacities for one
-    resolution, and a viewer's own anti-aliasing compensation would dim small Gaussians a second time (SPEC 3)."""
+    resolution, and a viewer's own anti-aliasing compensation would dim small Gaussians a second time (SPEC 13)."""
     p = Path(path)
     fmt = (fmt or p.suffix.lstrip(".")).lower()
     if fmt == "ply":
@@ -352,7 +347,7 @@ def parse_levels(text: str) -> tuple[float, ...]:
 
 def write_lod(model, out_dir: str | os.PathLike, levels=DEFAULT_LEVELS, *, fmt: str = "spz", sh_degree: int = 1,
               directions: int | None = None, source: str = "", log=None) -> dict:
-    """One file per level, each ``bake``d for its resolution, plus the manifest ``lod.json`` (SPEC 3); returns it.
+    """One file per level, each ``bake``d for its resolution, plus the manifest ``lod.json`` (SPEC 13); returns it.
 
     The manifest borrows the field names of splat-transform's Streamed SOG ``lod-meta.json`` (``count``, ``counts``,
     ``lodLevels``, ``filenames``; LOD 0 the finest) and adds, per level, its resolution, ``distance_scale`` (1 / xi)

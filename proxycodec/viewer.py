@@ -21,8 +21,9 @@ of view in radians; ``image_width`` / ``image_height`` are the canvas's drawing-
 stretches the background image over the whole viewport, so the principal point is the image centre and pixels are
 square.
 
-A container is decoded and rendered by the torch-free path (``lite``: torch is never imported, ~1.5 s of the
-start), other files by ``scenes.load_any``. viser is imported only when a viewer starts (``pip install -e '.[view]'``).
+Sources open with ``scenes.load_any(torch_free=True)``: a container is decoded and rendered by the torch-free path
+(``lite``: torch is never imported, ~1.5 s of the start). viser is imported only when a viewer starts
+(``pip install -e '.[view]'``).
 """
 
 from __future__ import annotations
@@ -409,32 +410,6 @@ def _numpy(image) -> np.ndarray:
     return np.asarray(image.detach().cpu().numpy() if hasattr(image, "detach") else image, dtype=np.float32)
 
 
-def load_for_viewing(path):
-    """A container by the torch-free path (``lite``: no torch import, ~1.5 s less to start), else
-    ``scenes.load_any`` (anchor PLYs, Scaffold-GS outputs, 3DGS PLY / SPZ / GLB files, containers lite does not
-    cover)."""
-    from .formats.container import MAGIC
-
-    try:
-        with open(path, "rb") as fh:
-            is_container = fh.read(len(MAGIC)) == MAGIC
-    except OSError:
-        is_container = False
-    if is_container:
-        try:
-            from . import lite
-        except ImportError:  # no numba
-            lite = None
-        if lite is not None:
-            try:
-                return lite.decode(path)
-            except lite.Unsupported:
-                pass
-    from .scenes import load_any
-
-    return load_any(path)
-
-
 def start_viewer(source, *, host: str = "127.0.0.1", port: int = 8080, res: float = 1.0,
                  max_size: int | None = None, image_format: str = "png",
                  log: Callable[[str], None] | None = print) -> Viewer:
@@ -452,7 +427,9 @@ def start_viewer(source, *, host: str = "127.0.0.1", port: int = 8080, res: floa
         raise ProxycodecError(f"max_size must be at least 1, got {max_size}")
     viser = import_viser()
     if isinstance(source, (str, os.PathLike)):
-        model = load_for_viewing(source)
+        from .scenes import load_any
+
+        model = load_any(source, torch_free=True)
     else:
         model = source  # a model already in memory (tests)
     cam0 = initial_camera_of(model)
