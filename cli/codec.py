@@ -10,7 +10,7 @@ from pathlib import Path
 import click
 
 from ..errors import ProxycodecError
-from .common import config_option, parse_resolutions, render_views, user_errors
+from .common import command_device, config_option, on_device, parse_resolutions, render_views, user_errors
 from .convert import convert_options
 
 #: An option whose default is ``EncodeConfig``'s field of the same name.
@@ -139,7 +139,7 @@ def encode(scene, out, weights, proxy_ratio, proxy_selection, cell_size, feature
         given = click.get_current_context().get_parameter_source("distill_iters") != click.core.ParameterSource.DEFAULT
         cfg = make_config(distill_iters if given else None, distill_time_budget, seed, voxel_size, views, view_size,
                           background, max_width, max_anchors, target_size)
-        _, r = convert_and_encode(p, out, cfg, keep=keep_anchor_scene, log=_stderr, **knobs)
+        _, r = convert_and_encode(p, out, cfg, keep=keep_anchor_scene, log=_stderr, device=command_device(), **knobs)
     else:
         if background is not None:
             raise ProxycodecError("--background applies to a 3DGS PLY; an anchor scene keeps the background it was "
@@ -153,7 +153,7 @@ def encode(scene, out, weights, proxy_ratio, proxy_selection, cell_size, feature
                          distill_time_budget=distill_time_budget,
                          distill_views=distill_views, distill_full_share=distill_full_share,
                          distill_targets=distill_targets, images=images,
-                         progress=_stderr)
+                         progress=_stderr, device=command_device())
     if as_json:
         click.echo(json.dumps(r.to_json(), indent=2))
     else:
@@ -257,7 +257,9 @@ def decode(container, res, cameras, out_dir, views, no_render, ply, spz, glb, lo
     if lod and bake_view is not None:
         raise ProxycodecError("--bake-view applies to --ply/--spz/--glb, not to --lod")
     t0 = time.perf_counter()
-    lite = decode_torch_free(container) if backend in ("auto", "cpu") and not exporting else None
+    # the torch-free path (CPU) unless torch is asked for: an export, a torch backend, or --device cuda
+    lite = decode_torch_free(container) if backend in ("auto", "cpu") and not exporting and not _cuda_asked() \
+        else None
     if lite is not None:
         from ..lite import default_cameras
 
@@ -265,7 +267,7 @@ def decode(container, res, cameras, out_dir, views, no_render, ply, spz, glb, lo
     else:
         from .. import codec
 
-        model = codec.decode(container)
+        model = on_device(codec.decode(container))
         default_cameras, n_anchors = codec.default_cameras, model.scene.num_anchors
     _stderr(f"decoded {n_anchors} anchors in {time.perf_counter() - t0:.2f} s")
     cams = load_cameras(cameras) if cameras else default_cameras(model)
@@ -276,6 +278,13 @@ def decode(container, res, cameras, out_dir, views, no_render, ply, spz, glb, lo
         out = Path(out_dir) if out_dir else Path(container).with_suffix("").with_name(
             Path(container).stem + "_renders")
         render_views(model, resolutions, out, list(views) or None, backend)
+
+
+def _cuda_asked() -> bool:
+    """Whether ``--device cuda`` was given (``auto`` does not import torch here: decode stays torch-free)."""
+    from ..devices import CUDA, name_from_env
+
+    return name_from_env() == CUDA
 
 
 def _export(model, container, exports: dict, xi: float, lod, levels, lod_format: str, sh_degree: int,

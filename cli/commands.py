@@ -8,7 +8,7 @@ from pathlib import Path
 
 import click
 
-from .common import background_option, parse_resolutions, render_views, user_errors
+from .common import background_option, command_device, on_device, parse_resolutions, render_views, user_errors
 
 
 @click.command()
@@ -45,7 +45,7 @@ def render(scene: str, res: str, out_dir: str, views: tuple[int, ...], backend: 
     cameras.json's, else an orbit around it)."""
     from ..scenes import load_any
 
-    model = load_any(scene)
+    model = on_device(load_any(scene))
     if background is not None:
         model.background = background
     render_views(model, parse_resolutions(res), Path(out_dir), list(views) or None, backend)
@@ -83,7 +83,8 @@ def demo(out_dir: str, res: str, backend: str, predictor_iters: int, predictor_c
     # analytically: distillation would only move it away from its design, SPEC section 6)
     knobs = {k: v for k, v in (("predictor_iters", predictor_iters), ("predictor_context", predictor_context))
              if v is not None}
-    report = codec.encode(ply, out / "sample.pxc", progress=lambda m: click.echo(m, err=True), **knobs)
+    report = codec.encode(ply, out / "sample.pxc", progress=lambda m: click.echo(m, err=True),
+                          device=command_device(), **knobs)
     s = codec.stats(report.path)
     click.echo(f"encoded -> {report.path}: {s['file_bytes']:,} B, {s['bits_per_anchor']:.1f} bits/anchor, "
                f"{s['ratio']:.1f}x smaller than PLY + weights; sections: "
@@ -92,6 +93,7 @@ def demo(out_dir: str, res: str, backend: str, predictor_iters: int, predictor_c
     decoded = codec.decode(report.path)
     click.echo(f"decoded {decoded.scene.num_anchors} anchors (leaves regenerated) in {time.perf_counter() - t0:.2f} s")
     decoded.cameras = model.cameras
+    model, decoded = on_device(model), on_device(decoded)
     rows = render_views(model, resolutions, out / "renders", [0, 3], backend, prefix="original_")
     rows_d = render_views(decoded, resolutions, out / "renders", [0, 3], backend, prefix="decoded_")
     from PIL import Image

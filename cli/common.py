@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import importlib
+import os
 import sys
 import time
 from pathlib import Path
@@ -32,6 +33,36 @@ def user_errors(fn):
             sys.exit(130)
 
     return wrapper
+
+
+def set_device(name: str) -> None:
+    """The group's ``--device``: recorded for the commands (and child processes) in ``$PROXYCODEC_DEVICE``; an
+    explicit ``cuda`` is checked at once, so a machine without a GPU gets one line and exit 2 whatever the command."""
+    from ..devices import CHOICES, CUDA, ENV, resolve
+
+    name = name.strip().lower()
+    try:
+        if name not in CHOICES:
+            raise ProxycodecError(f"--device (or ${ENV}) must be one of {', '.join(CHOICES)}, got {name!r}")
+        os.environ[ENV] = name
+        if name == CUDA:
+            resolve(CUDA)
+    except ProxycodecError as e:
+        click.echo(f"error: {e}", err=True)
+        sys.exit(2)
+
+
+def command_device():
+    """The ``torch.device`` the running command computes on (``--device``, resolved)."""
+    from ..devices import resolve
+
+    return resolve()
+
+
+def on_device(model):
+    """``model`` (a scene loaded by ``scenes.load_any``) on the command's device; the torch-free lite scenes have
+    no device and stay as they are."""
+    return model.to(command_device()) if hasattr(model, "to") else model
 
 
 def parse_resolutions(text: str) -> list[float]:

@@ -8,7 +8,7 @@ import json
 
 import click
 
-from .common import background_option, config_option, user_errors
+from .common import background_option, command_device, config_option, user_errors
 
 convert_option = functools.partial(config_option, "proxycodec.convert:ConvertConfig")
 
@@ -71,7 +71,7 @@ def convert(ply, out, iters, time_budget, seed, voxel_size, max_anchors, target_
 
     cfg = make_config(iters, time_budget, seed, voxel_size, views, view_size, background, max_width, max_anchors,
                       target_size)
-    r = run(ply, out, cfg, resume=resume, log=lambda m: click.echo(m, err=True))
+    r = run(ply, out, cfg, resume=resume, log=lambda m: click.echo(m, err=True), device=command_device())
     if as_json:
         click.echo(json.dumps(r.to_json(), indent=2))
     else:

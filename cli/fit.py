@@ -9,7 +9,7 @@ from pathlib import Path
 
 import click
 
-from .common import background_option, config_option, parse_resolutions, user_errors
+from .common import background_option, command_device, config_option, on_device, parse_resolutions, user_errors
 
 #: Options whose default is the field of the same name of ``FitConfig`` (``ExplicitConfig``: ``--explicit`` only).
 fit_option = functools.partial(config_option, "proxycodec.train:FitConfig")
@@ -154,7 +154,7 @@ def fit(dataset, out, iters, time_budget, max_width, seed, no_gate, embedding, f
                     xi_full_share=xi_full_share, film_hidden=film_hidden, stats_min_xi=stats_min_xi, **run)
     data = _load_data(dataset, max_width, images, test_every, not no_undistort)
     res = run_fit(data, out, cfg, dataset_root=str(Path(dataset).resolve()), resume=resume,
-                  keep_checkpoint=keep_checkpoint)
+                  keep_checkpoint=keep_checkpoint, device=command_device())
     click.echo(f"wrote {out} ({res.model.scene.num_anchors} anchors, {res.iterations} iterations, "
                f"{res.seconds:.0f} s)")
 
@@ -170,7 +170,7 @@ def _fit_explicit(dataset, out, run: dict, max_width, seed, images, test_every, 
         raise ProxycodecError("--resume is not supported with --explicit (the baseline keeps no checkpoints)")
     cfg = ExplicitConfig(seed=seed, max_width=max_width, sh_degree=sh_degree, backend=backend, **run)
     data = _load_data(dataset, max_width, images, test_every, undistort)
-    tr = run_explicit(data, cfg, lambda s: click.echo(s, err=True), out=out)
+    tr = run_explicit(data, cfg, lambda s: click.echo(s, err=True), out=out, device=command_device())
     click.echo(f"wrote {out} ({tr.num_gaussians} Gaussians, SH degree {sh_degree}, {tr.iteration} iterations, "
                f"{tr.elapsed:.0f} s, {Path(out).stat().st_size:,} B)")
 
@@ -218,7 +218,7 @@ def eval_cmd(scene, dataset, out_dir, max_width, res, protocol, n_views, images,
     from ..model import apply_gate_mode
     from ..scenes import load_any
 
-    model = load_any(scene)
+    model = on_device(load_any(scene))
     gate_used = apply_gate_mode(model, gate_mode)
     meta = model.meta
     fit_meta = meta.get("fit", {}) if isinstance(meta.get("fit"), dict) else {}

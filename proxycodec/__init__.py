@@ -24,6 +24,14 @@ _os.environ.setdefault("GOMP_SPINCOUNT", "1000")
 
 from .errors import ProxycodecError  # noqa: E402
 
+# Run from a source checkout (``python -m proxycodec.cli`` or ``pytest`` in the repository root, where this folder
+# shadows an installed copy): the sub-packages pyproject maps from the sibling folders formats/ and cli/ are found
+# there too. An installed package has them inside and is left alone.
+_here = _os.path.dirname(__file__)
+if not _os.path.isdir(_os.path.join(_here, "formats")) and \
+        _os.path.isfile(_os.path.join(_here, _os.pardir, "formats", "__init__.py")):
+    __path__.append(_os.path.normpath(_os.path.join(_here, _os.pardir)))  # noqa: F821 (a package's own __path__)
+
 _LAZY = {"encode": "codec", "decode": "codec", "load": "codec", "render": "codec", "stats": "codec",
          "query_features": "query", "FeatureField": "query"}
 

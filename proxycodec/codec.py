@@ -27,6 +27,7 @@ import torch
 from .camera import Camera
 from .camera import default_cameras as camera_defaults
 from .decoder import GaussianDecoder
+from .devices import as_device
 from .errors import ProxycodecError
 from .loop import check_run_length
 from .formats.container import (
@@ -282,6 +283,7 @@ def encode(
     predictor: ResidualPredictor | None = None,
     progress: Progress | None = None,
     extra_meta: dict | None = None,
+    device=None,
     **knobs,
 ) -> EncodeReport:
     """Compress an anchor scene to a container at ``out`` (written atomically).
@@ -290,7 +292,8 @@ def encode(
     Knobs: the fields of ``EncodeConfig`` (given as ``config`` or as keyword arguments). ``predictor``: a trained
     ``ResidualPredictor`` (e.g. from stage-2 training) to fine-tune for ``predictor_iters`` (0: keep as is).
     ``extra_meta``: JSON-able entries added to (or replacing) the container's metadata (``convert`` records the
-    conversion, and the 3DGS PLY as the source).
+    conversion, and the 3DGS PLY as the source). ``device`` (None: the CPU): where the distillation, the choice's
+    renders and the predictor and entropy-model fits compute; positions, quantisation and coding stay on the CPU.
     """
     unknown = set(knobs) - set(EncodeConfig.__dataclass_fields__)
     if unknown:
@@ -304,36 +307,38 @@ def encode(
     if source_bytes is None:
         source_bytes = _saved_size(model)
     source_info = {"bytes": source_bytes, "name": os.path.basename(source_name)}
+    dev = as_device(device)
+    on_device = model.to(dev)  # renders and distillation run there; the container is built from host arrays
     has_fitted = fitted[0] is not None and cfg.use_fitted  # a stage-2 predictor, used as fitted
     distilled = choice = built = None
     if predictor is None and cfg.distill is None and cfg.images is None and not has_fitted:
         # 2a. no predictor of its own and no forced path: the fast path first, distillation only if it falls short
-        built = _build(model, fitted, cfg, None, source_info, say)
-        choice = _choose_path(built.decoded, model, cfg, say)
+        built = _build(model, fitted, cfg, None, source_info, say, device=dev)
+        choice = _choose_path(built.decoded.to(dev), on_device, cfg, say)
         if choice["path"] == "distill":
-            distilled = _distill(model, (None, None), cfg, say)
+            distilled = _distill(on_device, (None, None), cfg, say)
     else:
         if predictor is None and cfg.distilling(has_fitted):
-            distilled = _distill(model, fitted if cfg.use_fitted else (None, None), cfg, say)
+            distilled = _distill(on_device, fitted if cfg.use_fitted else (None, None), cfg, say)
         choice = {"path": "distill" if distilled is not None else "stage-2 predictor" if has_fitted and
                   predictor is None else "L_recon", "forced": cfg.distill is not None or cfg.images is not None}
     if distilled is not None:
         # 2b. the distilled proxy scene, its predictor and split used as fitted
         built = _build(distilled.model, (distilled.predictor, distilled.proxy_mask), replace(cfg, use_fitted=True),
-                       None, source_info, say, distilled=distilled)
+                       None, source_info, say, distilled=distilled, device=dev)
     elif built is None:
-        built = _build(model, fitted, cfg, predictor, source_info, say)
+        built = _build(model, fitted, cfg, predictor, source_info, say, device=dev)
     cfg, meta, sections, decoded = built.cfg, built.meta, built.sections, built.decoded
     # the choice as measured, without its seconds: same input, same bytes (the time is in the report's seconds)
     meta["encode_choice"] = _jsonable({k: v for k, v in choice.items() if k != "seconds"})
     if distilled is not None:
-        meta["distill"]["held_out"] = _held_out(decoded, model, distilled, cfg, say)
+        meta["distill"]["held_out"] = _held_out(decoded.to(dev), on_device, distilled, cfg, say)
     for k, v in (extra_meta or {}).items():  # the caller's word wins (convert: the source is the 3DGS PLY)
         meta[k] = _jsonable(v)
     t_entropy = time.perf_counter()
     raw = frozenset()
     if _entropy_coded(cfg, meta):
-        sections, raw = _entropy_code(sections, meta, built.pos_sorted, built.voxel, built.mask, cfg, say)
+        sections, raw = _entropy_code(sections, meta, built.pos_sorted, built.voxel, built.mask, cfg, say, dev)
     t_entropy = time.perf_counter() - t_entropy
     packed, meta["weights_layout"] = pack_weights(sections)
     file_bytes = write_container(out, meta, packed, level=cfg.zstd_level, raw_sections=raw)
@@ -366,14 +371,14 @@ class _Built:
 
 
 def _build(model: SceneModel, fitted: tuple, cfg: EncodeConfig, predictor: ResidualPredictor | None, source: dict,
-           say: Progress, distilled=None) -> _Built:
+           say: Progress, distilled=None, device=None) -> _Built:
     """Positions coded, proxies chosen, attributes quantised, the predictor fitted (L_recon, against the
     dequantised proxies), sections and metadata made, and the scene decoded from them as ``decode`` will."""
     scene = model.scene
     K, Fd, voxel = scene.n_offsets, scene.feat_dim, float(scene.voxel_size)
     pos = scene.positions.detach().cpu().numpy().astype(np.float32)
     coding = encode_positions(pos, voxel)
-    feats, offs, scal = (getattr(scene, k).detach().float()[torch.from_numpy(coding.order)].numpy()
+    feats, offs, scal = (getattr(scene, k).detach().float().cpu()[torch.from_numpy(coding.order)].numpy()
                          for k in ("features", "offsets", "scalings"))
     pos_sorted = pos[coding.order]
     # proxies and the predictor to start from (those of stage-2 training, when the scene comes from ``fit``)
@@ -384,7 +389,8 @@ def _build(model: SceneModel, fitted: tuple, cfg: EncodeConfig, predictor: Resid
     q = quantize_anchors(feats, offs, scal, mask, feature_bits=cfg.feature_bits, offset_bits=cfg.offset_bits,
                          scaling_bits=cfg.scaling_bits, predict_offsets=cfg.predict_offsets, steps=steps,
                          positions=pos_sorted, voxel=voxel)
-    pred, tcfg, training, t_train = _fit_predictor(cfg, predictor, pos_sorted, mask, q, offs, Fd, K, voxel, say)
+    pred, tcfg, training, t_train = _fit_predictor(cfg, predictor, pos_sorted, mask, q, offs, Fd, K, voxel, say,
+                                                   device)
     sections = scene_sections(coding, mask, q, model.decoder.state_arrays(), pred.state_arrays(), cfg.weights_dtype)
     meta = scene_metadata(
         coding, mask, q, feat_dim=Fd, n_offsets=K, voxel_size=voxel, bounds=np.stack([pos.min(0), pos.max(0)]),
@@ -506,7 +512,7 @@ def _net_shapes(F: int, K: int, hidden: int) -> list[tuple[int, int]]:
 
 
 def _entropy_code(sections: dict, meta: dict, pos_sorted: np.ndarray, voxel: float, mask: np.ndarray,
-                  cfg: EncodeConfig, say: Progress) -> tuple[dict, frozenset]:
+                  cfg: EncodeConfig, say: Progress, device=None) -> tuple[dict, frozenset]:
     """Scene format 4: the attribute sections replaced by the entropy stream and the integer nets (fitted here to
     the scene's symbols); ``meta`` gains ``entropy``. Lossless: the decoder gets the same symbols back."""
     from . import entropy, entropy_fit  # noqa: PLC0415
@@ -533,7 +539,7 @@ def _entropy_code(sections: dict, meta: dict, pos_sorted: np.ndarray, voxel: flo
             f"({start:,.0f} B; below {AUTO_MIN_START_RATIO:g}x its fit cannot catch up): zstd kept (scene format 2)")
         return sections, frozenset()
     nets, _ = entropy_fit.fit_nets(ctx, a, hidden=cfg.entropy_hidden, iters=cfg.entropy_iters, seed=cfg.seed,
-                                   progress=say)
+                                   progress=say, device=device)
     coded, emeta, sizes = entropy.encode(ctx, nets, a, bits)
     model_bytes = coded[entropy.STREAM].nbytes + sum(len(cctx.compress(v.tobytes())) for k, v in coded.items()
                                                      if k != entropy.STREAM)
@@ -559,7 +565,7 @@ def _distill(model: SceneModel, fitted: tuple, cfg: EncodeConfig, say: Progress)
     from .distill import distill
     from .train import FitConfig
 
-    pos = model.scene.positions.detach().numpy()
+    pos = model.scene.positions.detach().cpu().numpy()
     voxel = float(model.scene.voxel_size)
     fcfg = FitConfig(
         iters=cfg.distill_iters, time_budget=cfg.distill_time_budget, seed=cfg.seed, max_width=None,
@@ -638,7 +644,8 @@ def _choose_proxies(cfg: EncodeConfig, pos_sorted: np.ndarray, voxel: float, ord
 
 
 def _fit_predictor(cfg: EncodeConfig, predictor: ResidualPredictor | None, pos_sorted: np.ndarray, mask: np.ndarray,
-                   q: QuantizedAnchors, offs: np.ndarray, Fd: int, K: int, voxel: float, say: Progress):
+                   q: QuantizedAnchors, offs: np.ndarray, Fd: int, K: int, voxel: float, say: Progress,
+                   device=None):
     """The residual predictor (given, or new) fitted on the leaves against the dequantised proxies (what the
     decoder will see) for ``cfg.predictor_iters``. -> (predictor, its TrainConfig, TrainResult, seconds)."""
     pcfg = PredictorConfig(feat_dim=Fd, n_offsets=K, predict_offsets=cfg.predict_offsets,
@@ -664,8 +671,9 @@ def _fit_predictor(cfg: EncodeConfig, predictor: ResidualPredictor | None, pos_s
 
     t0 = time.perf_counter()
     offsets = q.offsets if not cfg.predict_offsets else np.where(mask[:, None, None], q.offsets, offs)
-    training = train_predictor(pred, torch.from_numpy(pos_sorted), torch.from_numpy(q.features), mask, nearest,
-                               offsets=torch.from_numpy(offsets), config=tcfg, progress=on_iter,
+    dev = as_device(device)
+    training = train_predictor(pred, torch.from_numpy(pos_sorted).to(dev), torch.from_numpy(q.features).to(dev), mask,
+                               nearest, offsets=torch.from_numpy(offsets).to(dev), config=tcfg, progress=on_iter,
                                progress_every=max(1, min(100, cfg.predictor_iters // 10 or 1)))
     t_train = time.perf_counter() - t0
     say(f"predictor  L_recon over all leaves: proxy copy {training.baseline_loss:.5f} -> {training.final_loss:.5f}")
@@ -688,7 +696,7 @@ def _drop_dead_offsets(decoded: SceneModel, sections: dict, meta: dict, q: Quant
 def _sample_viewpoints(model: SceneModel, n_dirs: int = 128) -> np.ndarray:
     """Camera centres to judge which neural Gaussians can ever be drawn: the model's cameras, plus a Fibonacci
     sphere of ``n_dirs`` directions around the anchors' centre at 0.5, 1 and 2 times the median camera distance."""
-    pos = model.scene.positions.detach().double().numpy()
+    pos = model.scene.positions.detach().double().cpu().numpy()
     center = 0.5 * (pos.min(0) + pos.max(0))
     cams = np.array([c.center for c in (model.cameras or [])], dtype=np.float64).reshape(-1, 3)
     if len(cams):

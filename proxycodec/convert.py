@@ -28,13 +28,14 @@ import math
 import os
 import sys
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from .camera import Camera
+from .devices import as_device
 from .errors import ProxycodecError
 from .loop import ProgressFn
 from .model import SceneModel
@@ -136,7 +137,7 @@ class CanonicalFrame:
         log(scale) (offsets are in units of the first three), the decoder's length unit and embedding frame scaled;
         it renders from world cameras what the canonical scene renders from canonical ones."""
         s = model.scene
-        c = torch.as_tensor(self.center, dtype=torch.float64)
+        c = torch.as_tensor(self.center, dtype=torch.float64, device=s.positions.device)
         pos = (s.positions.detach().double() * self.scale + c).float()
         scal = (s.scalings.detach().double() + math.log(self.scale)).float()
         scene = AnchorScene(pos, s.features.detach(), s.offsets.detach(), scal, float(s.voxel_size * self.scale),
@@ -147,7 +148,7 @@ class CanonicalFrame:
                        length_unit=float(cfg.length_unit * self.scale))
         from .decoder import GaussianDecoder
 
-        dec = GaussianDecoder.from_arrays(dcfg, model.decoder.state_arrays()).eval()
+        dec = GaussianDecoder.from_arrays(dcfg, model.decoder.state_arrays()).to(s.positions.device).eval()
         cams = [self.camera_out(c) for c in model.cameras] if model.cameras else model.cameras
         return SceneModel(scene, dec, cams, model.background, dict(model.meta))
 
@@ -327,6 +328,9 @@ class SlotTargets:
     quat: torch.Tensor  # [M, K, 4] unit
     sh: torch.Tensor  # [M, K, C, 3]
 
+    def to(self, device) -> SlotTargets:
+        return SlotTargets(*(getattr(self, f.name).to(device) for f in fields(self)))
+
 
 def anchors_from_gaussians(g: Gaussians, voxel: float, K: int, F: int) -> tuple[AnchorScene, SlotTargets]:
     """Anchors at the occupied cells' centres; the K heaviest Gaussians of a cell as its offsets (free slots at the
@@ -370,8 +374,9 @@ def fit_attributes(scene: AnchorScene, decoder, targets: SlotTargets, degree: in
     M, K = targets.used.shape
     if iters == 0 or M == 0:
         return scene
+    dev = scene.positions.device  # random draws on the CPU (the same on every device), moved there
     gen = torch.Generator().manual_seed(seed)
-    feats = (0.01 * torch.randn(scene.features.shape, generator=gen)).requires_grad_(True)
+    feats = (0.01 * torch.randn(scene.features.shape, generator=gen)).to(dev).requires_grad_(True)
     mlps = [decoder.mlp_opacity, decoder.mlp_cov, decoder.mlp_color]
     params = [feats] + [p for m in mlps for p in m.parameters()]
     opt = torch.optim.Adam([{"params": [feats], "lr": 0.02}, {"params": params[1:], "lr": 0.003}])
@@ -382,10 +387,10 @@ def fit_attributes(scene: AnchorScene, decoder, targets: SlotTargets, degree: in
     batch = min(M, 16384)
     t0 = time.perf_counter()
     for it in range(iters):
-        idx = torch.randint(0, M, (batch,), generator=gen) if batch < M else torch.arange(M)
-        d = torch.randn(len(idx), 3, generator=gen)
+        idx = (torch.randint(0, M, (batch,), generator=gen) if batch < M else torch.arange(M)).to(dev)
+        d = torch.randn(len(idx), 3, generator=gen).to(dev)
         d = d / d.norm(dim=1, keepdim=True).clamp_min(1e-12)  # view direction: camera -> anchor
-        dist = torch.full((len(idx), 1), float(view_distance))
+        dist = torch.full((len(idx), 1), float(view_distance), device=dev)
         x = torch.cat([feats[idx], d, dist], -1)
         op = torch.tanh(decoder.mlp_opacity(x if cfg.opacity_dist else x[:, :-1]))
         cov = decoder.mlp_cov(x if cfg.cov_dist else x[:, :-1]).reshape(-1, K, 7)
@@ -477,9 +482,10 @@ class ConvertResult:
 
 
 def initial_model(g: Gaussians, cfg: ConvertConfig, cameras: list[Camera], log: ProgressFn,
-                  seconds: dict | None = None) -> tuple[SceneModel, VoxelChoice]:
-    """The anchor scene a conversion starts from: voxel, anchors, decoder and features fitted to the Gaussians.
-    ``seconds`` (optional) receives each step's time: ``voxel``, ``anchors``, ``initial_fit``."""
+                  seconds: dict | None = None, device=None) -> tuple[SceneModel, VoxelChoice]:
+    """The anchor scene a conversion starts from: voxel, anchors, decoder and features fitted to the Gaussians
+    (on ``device``; the voxel and the anchors are found on the CPU). ``seconds`` (optional) receives each step's
+    time: ``voxel``, ``anchors``, ``initial_fit``."""
     from .decoder import GaussianDecoder
 
     seconds = {} if seconds is None else seconds
@@ -489,12 +495,14 @@ def initial_model(g: Gaussians, cfg: ConvertConfig, cameras: list[Camera], log: 
     seconds["voxel"] = time.perf_counter() - t
     t = time.perf_counter()
     scene, targets = anchors_from_gaussians(g, choice.voxel, fc.n_offsets, fc.feat_dim)
+    dev = as_device(device)
+    scene, targets = scene.to(dev), targets.to(dev)
     seconds["anchors"] = time.perf_counter() - t
     b = scene.bounds()
     center = 0.5 * (b[0] + b[1])
     radius = max(0.5 * float(np.linalg.norm(b[1] - b[0])), 1e-6)
     torch.manual_seed(fc.seed)
-    dec = GaussianDecoder(fc.decoder_config(center, radius))
+    dec = GaussianDecoder(fc.decoder_config(center, radius)).to(dev)
     cam_c = np.array([c.center for c in cameras])
     dist = float(np.median(np.linalg.norm(cam_c - center, axis=1))) if len(cam_c) else radius
     t = time.perf_counter()
@@ -507,10 +515,11 @@ def initial_model(g: Gaussians, cfg: ConvertConfig, cameras: list[Camera], log: 
 
 def convert(ply_path: str | os.PathLike, out_ply: str | os.PathLike, config: ConvertConfig = ConvertConfig(), *,
             resume: bool = False, log: ProgressFn | None = None, report_views: int = 8,
-            stop_after: int | None = None) -> ConvertResult:
+            stop_after: int | None = None, device=None) -> ConvertResult:
     """Convert the INRIA 3DGS PLY at ``ply_path`` into an anchor scene at ``out_ply`` (+ weights sidecar, written
     atomically by ``fit``; resumable from its checkpoint, ``<out>.ckpt.pxc``, saved on interrupt as ``fit`` saves
-    it). ``stop_after`` (tests): interrupt after that many training iterations."""
+    it). ``stop_after`` (tests): interrupt after that many training iterations. ``device``: where the initial fit,
+    the teacher's renders and the training compute (None: the CPU)."""
     from .distill import TeacherViews, held_out_report, report_line
     from .explicit import ExplicitModel, ply_background
     from .formats.splats import read_splats
@@ -534,7 +543,8 @@ def convert(ply_path: str | os.PathLike, out_ply: str | os.PathLike, config: Con
         where = "given"
     log(f"background: {' '.join(f'{b:g}' for b in config.background)} ({where})")
     teacher = ExplicitModel(ply, tuple(config.background),
-                            {"kind": "inria-3dgs", "source": str(Path(ply_path)), "background_from": where})
+                            {"kind": "inria-3dgs", "source": str(Path(ply_path)), "background_from": where}
+                            ).to(as_device(device))
     cj = find_cameras_json(ply_path)
     layout = None
     if cj is not None:
@@ -549,7 +559,7 @@ def convert(ply_path: str | os.PathLike, out_ply: str | os.PathLike, config: Con
     views = TeacherViews(teacher, cams, backend=config.fit.backend)
     # resuming: the checkpoint replaces the start's features and decoder, so they are not fitted again
     work = replace(config, voxel_size=config.voxel_size / frame.scale)  # a given voxel: world units -> canonical
-    start, choice = initial_model(g, replace(work, init_iters=0) if resume else work, cams, log, stages)
+    start, choice = initial_model(g, replace(work, init_iters=0) if resume else work, cams, log, stages, device)
     choice = replace(choice, voxel=choice.voxel * frame.scale)
     log(choice.describe() + (f" (budget {config.anchor_budget():,} anchors)" if config.anchor_budget() else ""))
     t_init = time.perf_counter() - t0
@@ -557,7 +567,7 @@ def convert(ply_path: str | os.PathLike, out_ply: str | os.PathLike, config: Con
     if config.anchor_budget() is not None:  # growing keeps within the budget too
         fit_cfg = replace(fit_cfg, max_anchors=min(fit_cfg.max_anchors, config.anchor_budget()))
     res = fit(views, out_ply, fit_cfg, dataset_root=str(ply_path), resume=resume,
-              log=log, start=start, stop_after=stop_after, to_save=frame.result_out)
+              log=log, start=start, stop_after=stop_after, to_save=frame.result_out, device=device)
     t_fit = time.perf_counter() - t0 - t_init
     rep = held_out_report(res.model, views, max_views=report_views, backend=config.fit.backend)
     src = held_out_report(teacher, views, max_views=report_views, backend=config.fit.backend)
@@ -574,7 +584,8 @@ def replace_fit(config: ConvertConfig, **fit_fields) -> ConvertConfig:
 
 
 def convert_and_encode(ply_path: str | os.PathLike, out: str | os.PathLike, config: ConvertConfig = ConvertConfig(),
-                       *, keep: str | os.PathLike | None = None, log: ProgressFn | None = None, **encode_knobs):
+                       *, keep: str | os.PathLike | None = None, log: ProgressFn | None = None, device=None,
+                       **encode_knobs):
     """``convert`` then ``codec.encode`` of the anchor scene (its stage-2 predictor as fitted): -> (ConvertResult,
     EncodeReport). ``keep``: where the intermediate anchor PLY (+ weights) goes; default a temporary folder that is
     removed afterwards."""
@@ -591,13 +602,14 @@ def convert_and_encode(ply_path: str | os.PathLike, out: str | os.PathLike, conf
         tmp = Path(tempfile.mkdtemp(prefix=f".{Path(out).name}.", suffix=".convert", dir=out_dir))
         keep = tmp / "anchors.ply"
     try:
-        conv = convert(ply_path, keep, config, log=log)
+        conv = convert(ply_path, keep, config, log=log, device=device)
         src = {"name": Path(ply_path).name, "bytes": Path(ply_path).stat().st_size, "kind": "inria-3dgs"}
         info = {**conv.to_json(), "source": src, "kept": None if tmp is not None else str(keep)}
         info.pop("path")
         info.pop("seconds")  # same input, same bytes: the container holds no time (the result keeps it)
         # the container's source is the 3DGS PLY (stats' ratio is against it), not the intermediate anchor scene
-        report = encode(keep, out, progress=log, extra_meta={"convert": info, "source": src}, **encode_knobs)
+        report = encode(keep, out, progress=log, extra_meta={"convert": info, "source": src}, device=device,
+                        **encode_knobs)
     finally:
         if tmp is not None:
             shutil.rmtree(tmp, ignore_errors=True)

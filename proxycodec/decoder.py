@@ -172,7 +172,7 @@ def live_slots(
     """
     cfg = decoder.config
     M, K = positions.shape[0], cfg.n_offsets
-    live = torch.zeros(M, K, dtype=torch.bool)
+    live = torch.zeros(M, K, dtype=torch.bool, device=positions.device)
     if M == 0 or viewpoints.shape[0] == 0:
         return live
     lin1, lin2 = decoder.mlp_opacity[0], decoder.mlp_opacity[2]

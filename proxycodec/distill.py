@@ -23,8 +23,9 @@ import numpy as np
 import torch
 
 from .camera import Camera
+from .devices import CPU
 from .errors import ProxycodecError
-from .loop import ProgressFn, TargetImages, fmt_time, run_until_done
+from .loop import ProgressFn, TargetImages, fmt_time, resize_torch, run_until_done
 from .metrics import psnr, ssim
 from .model import SceneModel
 from .train import FitConfig, Trainer
@@ -137,6 +138,7 @@ class TeacherViews:
         self.train_indices = [i for i in range(n) if i not in held]
         self.background = tuple(float(v) for v in teacher.background)
         self.bounds = teacher.scene.bounds()
+        self.device = teacher.device  # targets are made where the teacher renders
         self.points = self.point_colors = None
         self._full: dict[int, np.ndarray] = {}
 
@@ -156,9 +158,13 @@ class TeacherViews:
     def render(self, i: int, size: tuple[int, int]) -> np.ndarray:
         """The teacher's render of view ``i`` at ``size`` (float32 [h, w, 3], clamped to [0, 1] as a photo, and every
         render we report, is: a 3DGS teacher's SH colours can exceed 1)."""
+        return self.render_tensor(i, size).cpu().numpy().astype(np.float32)
+
+    def render_tensor(self, i: int, size: tuple[int, int]) -> torch.Tensor:
+        """``render`` as a tensor where the teacher renders."""
         cam = self.cameras[i]
         img = self.teacher.render(cam, size[0] / cam.width, backend=self.backend, size=size).image
-        return img.clamp(0.0, 1.0).numpy().astype(np.float32)
+        return img.clamp(0.0, 1.0)
 
     def load_image(self, i: int, xi: float = 1.0) -> torch.Tensor:
         """The teacher's target for view ``i`` at ``xi`` (float32 [h, w, 3]): its render at ``source_size``,
@@ -173,6 +179,9 @@ class TeacherViews:
         w, h = self.image_size(i, xi)
         size = self.source_size(i, w, h)
         cam = self.cameras[i]
+        if self.device.type != CPU:  # on the device: rendered, cached and resized there (``loop.resize_torch``)
+            src = full(i) if size == (cam.width, cam.height) else self.render_tensor(i, size)
+            return resize_torch(src.float(), w, h)
         src = full(i) if size == (cam.width, cam.height) else self.render(i, size)
         return torch.from_numpy(resize_image(src, w, h) if (w, h) != src.shape[1::-1] else src.copy())
 
@@ -188,7 +197,7 @@ class TeacherViews:
     def targets(self, max_bytes: int):
         """The trainer's targets (``get(view, xi)``): the 100% renders kept in ``loop.TargetImages``' bounded cache
         (float16) and area-averaged from there; sizes the rule renders at another size are rendered on demand."""
-        return _TeacherTargets(self, TargetImages(self, max_bytes))
+        return _TeacherTargets(self, TargetImages(self, max_bytes, self.device))
 
 
 class _TeacherTargets:
@@ -196,7 +205,11 @@ class _TeacherTargets:
         self.views, self.full = views, full
 
     def get(self, i: int, xi: float) -> torch.Tensor:
-        return self.views.target(i, xi, lambda j: self.full.reference(j).astype(np.float32))
+        return self.views.target(i, xi, lambda j: _as_float32(self.full.reference(j)))
+
+
+def _as_float32(a):
+    return a.float() if isinstance(a, torch.Tensor) else a.astype(np.float32)
 
 
 # ================================================================================================ the run
@@ -220,7 +233,8 @@ def distill(source: SceneModel, config: FitConfig, *, views: TeacherViews | None
     ``update_until`` are set to 0 here). ``start_proxies``: (predictor, proxy mask) to start from (a fitted scene's).
     ``lr_scale`` multiplies the learning rates of the anchors and the decoder (not the predictor's): a converged
     scene is fine-tuned, and Adam's first steps move every parameter by about its learning rate. ``targets``: how
-    the default views make their targets (``TARGET_RULES``, or "auto": ``target_rule_for``).
+    the default views make their targets (``TARGET_RULES``, or "auto": ``target_rule_for``). It runs where
+    ``source`` lies (``SceneModel.to``); the result is left there.
     """
     log = log or (lambda s: None)
     cfg = replace(config, proxies=True, stage2_start=0.0, update_until=0.0, checkpoint_every=0.0)
@@ -232,7 +246,7 @@ def distill(source: SceneModel, config: FitConfig, *, views: TeacherViews | None
     views = views or TeacherViews(source, teacher_cameras(source, min_views), backend=cfg.backend,
                                   targets=target_rule_for(source, targets))
     t0 = time.perf_counter()
-    tr = Trainer(views, cfg, "distill", log, start=source, start_proxies=start_proxies)
+    tr = Trainer(views, cfg, "distill", log, start=source, start_proxies=start_proxies, device=source.device)
     log(f"distill: {len(views.train_indices)} teacher views ({len(views.test_indices)} held out), "
         f"{tr.anchors.num_anchors} anchors; iters {cfg.iters}, time budget {cfg.time_budget}")
     run_until_done(tr, log, lambda st: f"xi {st['xi']:.2f}  gauss {st['gaussians']:7d}",
@@ -241,7 +255,7 @@ def distill(source: SceneModel, config: FitConfig, *, views: TeacherViews | None
     res.model.cameras = list(source.cameras) if source.cameras else None
     log(f"distill: {tr.iteration} iterations in {fmt_time(tr.elapsed)} "
         f"({time.perf_counter() - t0:.1f} s with the teacher's renders)")
-    return DistillResult(res.model, tr.predictor.eval(), tr.proxy_mask.numpy().copy(), tr.iteration, tr.elapsed,
+    return DistillResult(res.model, tr.predictor.eval(), tr.proxy_mask.cpu().numpy().copy(), tr.iteration, tr.elapsed,
                          views, tr.history)
 
 
@@ -258,9 +272,9 @@ def held_out_report(model: SceneModel, views: TeacherViews, resolutions=REPORT_R
     for xi in resolutions:
         p, s, q = [], [], []
         for i in idx:
-            gt = views.load_image(i, xi).numpy()
-            img = model.render(views.cameras[i], xi, backend=backend).image.clamp(0, 1).numpy()
-            same = views.teacher.render(views.cameras[i], xi, backend=backend).image.clamp(0, 1).numpy()
+            gt = views.load_image(i, xi).cpu().numpy()
+            img = model.render(views.cameras[i], xi, backend=backend).image.clamp(0, 1).cpu().numpy()
+            same = views.teacher.render(views.cameras[i], xi, backend=backend).image.clamp(0, 1).cpu().numpy()
             p.append(psnr(img, gt))
             s.append(ssim(img, gt))
             q.append(psnr(img, same))

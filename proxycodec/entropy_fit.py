@@ -17,6 +17,7 @@ import numpy as np
 import torch
 
 from . import entropy as ent
+from .devices import as_device
 from .sections import LEVEL_DIVISOR, LEVEL_MAX, level_multipliers, position_cells
 
 INPUT_SCALE = 128.0
@@ -132,9 +133,11 @@ def start_bytes(ctx: ent.Context, a: ent.Attributes) -> float:
 
 
 def fit_nets(ctx: ent.Context, a: ent.Attributes, *, hidden: int = 16, iters: int = 1500, lr: float = 3e-3,
-             seed: int = 0, batch: int = 16384, progress=None) -> tuple[dict[str, ent.IntNet], dict[str, float]]:
-    """Fit the three float nets to the scene's symbols (Adam on the rate), convert them to integer nets.
-    Returns the nets and the float model's estimated bytes per net."""
+             seed: int = 0, batch: int = 16384, progress=None, device=None
+             ) -> tuple[dict[str, ent.IntNet], dict[str, float]]:
+    """Fit the three float nets to the scene's symbols (Adam on the rate) on ``device`` (None: the CPU; the
+    batches are drawn on the CPU either way), convert them to integer nets (on the CPU: the integer nets are the
+    format). Returns the nets and the float model's estimated bytes per net."""
     F, K = a.features.shape[1], a.offsets.shape[1] // 3
     sizes = ent.net_inputs(F, K)
     data = samples(ctx, a)
@@ -145,8 +148,8 @@ def fit_nets(ctx: ent.Context, a: ent.Attributes, *, hidden: int = 16, iters: in
     for name in ent.NETS:
         n_in, n_out = sizes[name]
         with_base = name != "features"
-        net = FloatNet(n_in, n_out, hidden, with_base)
-        X, Y, B, Mk = _net_data(data, name, n_out)
+        net = FloatNet(n_in, n_out, hidden, with_base).to(as_device(device))
+        X, Y, B, Mk = (t.to(as_device(device)) for t in _net_data(data, name, n_out))
         if len(X) == 0:
             nets[name] = to_int(net, X)
             estimate[name] = 0.0
@@ -157,7 +160,7 @@ def fit_nets(ctx: ent.Context, a: ent.Attributes, *, hidden: int = 16, iters: in
         sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, iters, eta_min=lr * 0.1)
         n = len(X)
         for it in range(iters):
-            sel = torch.randint(0, n, (min(batch, n),), generator=g) if n > batch else slice(None)
+            sel = torch.randint(0, n, (min(batch, n),), generator=g).to(X.device) if n > batch else slice(None)
             mu, lvl = net(X[sel], B[sel] if with_base else None)
             loss = (laplace_bits(Y[sel], mu, lvl) * Mk[sel]).sum() / Mk[sel].sum()
             opt.zero_grad()
@@ -169,7 +172,7 @@ def fit_nets(ctx: ent.Context, a: ent.Attributes, *, hidden: int = 16, iters: in
         with torch.no_grad():
             mu, lvl = net(X, B if with_base else None)
             estimate[name] = float((laplace_bits(Y, mu, lvl) * Mk).sum()) / 8
-        nets[name] = to_int(net, X)
+        nets[name] = to_int(net.cpu(), X.cpu())
     return nets, estimate
 
 
@@ -306,9 +309,9 @@ class RateModel(torch.nn.Module):
         q_f = rounded(v_f, self.mid_features, st["features"])
         q_s = rounded(v_s, self.mid_scalings, st["scalings"])
         q_o = rounded(v_o, self.mid_offsets, st["offsets"]).reshape(M, K, 3)
-        y_f = v_f + torch.rand(v_f.shape, generator=generator) - 0.5
-        y_s = v_s + torch.rand(v_s.shape, generator=generator) - 0.5
-        y_o = v_o + torch.rand(v_o.shape, generator=generator) - 0.5
+        y_f = v_f + torch.rand(v_f.shape, generator=generator, device=v_f.device) - 0.5
+        y_s = v_s + torch.rand(v_s.shape, generator=generator, device=v_s.device) - 0.5
+        y_o = v_o + torch.rand(v_o.shape, generator=generator, device=v_o.device) - 0.5
 
         def clip(v):
             return v.detach().clamp(-ent.ACT_MAX, ent.ACT_MAX)
@@ -317,7 +320,7 @@ class RateModel(torch.nn.Module):
             n = len(idx)
             if n <= self.sample:
                 return idx, 1.0
-            sel = torch.randperm(n, generator=generator)[:self.sample]
+            sel = torch.randperm(n, generator=generator, device=idx.device)[:self.sample]
             return idx[sel], n / self.sample
 
         bits = features.new_zeros(())
@@ -329,7 +332,7 @@ class RateModel(torch.nn.Module):
             c0, c1 = g * ent.FEATURE_GROUP, min(F, (g + 1) * ent.FEATURE_GROUP)
             known = torch.zeros_like(yp)
             known[:, :c0] = clip(yp[:, :c0])
-            onehot = torch.zeros(len(P_rows), n_groups)
+            onehot = yp.new_zeros(len(P_rows), n_groups)
             onehot[:, g] = 64
             mu, lvl = self.nets["features"](torch.cat([self.posn[P_rows], known, onehot], 1))
             bits = bits + wp * laplace_bits(yp[:, c0:c1], mu[:, :c1 - c0], lvl[:, :c1 - c0]).sum()
@@ -338,12 +341,12 @@ class RateModel(torch.nn.Module):
             if not len(rows):
                 continue
             src = self.near[rows] if leaf else rows
-            head = [f_ctx[src], self.posn[rows], torch.full((len(rows), 1), float(ent.FLAG if leaf else 0)),
+            head = [f_ctx[src], self.posn[rows], y_s.new_full((len(rows), 1), float(ent.FLAG if leaf else 0)),
                     self.rel[rows]]
-            ref_s = y_s[src].detach() if leaf else torch.zeros(len(rows), y_s.shape[1])
+            ref_s = y_s[src].detach() if leaf else y_s.new_zeros(len(rows), y_s.shape[1])
             mu, lvl = self.nets["scalings"](torch.cat(head + [clip(ref_s)], 1), ref_s)
             bits = bits + w * laplace_bits(y_s[rows], mu, lvl).sum()
-            ref_o = y_o[src].detach() if leaf else torch.zeros(len(rows), y_o.shape[1])
+            ref_o = y_o[src].detach() if leaf else y_o.new_zeros(len(rows), y_o.shape[1])
             mu, lvl = self.nets["offsets"](torch.cat(head + [clip(y_s[rows]), clip(ref_o)], 1), ref_o)
             bits = bits + w * laplace_bits(y_o[rows], mu, lvl).sum()
         return q_f, q_o, q_s, bits

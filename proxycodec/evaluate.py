@@ -24,6 +24,7 @@ import numpy as np
 from .errors import ProxycodecError
 from .fileio import atomic_write
 from .metrics import psnr, ssim
+from .devices import synchronize
 from .perceptual import MIN_SIDE, load_lpips, lpips, lpips_status
 
 __all__ = ["EXTRA_RESOLUTIONS", "MAIN_RESOLUTIONS", "MIP_SPLATTING_SCALES", "PROTOCOLS", "EvalReport", "evaluate",
@@ -98,6 +99,7 @@ def evaluate(model, data, *, resolutions: Sequence[float] = MAIN_RESOLUTIONS + E
             gt = target(v, xi)
             t0 = time.perf_counter()
             r = model.render(cam, xi, backend=backend)
+            synchronize(getattr(model, "device", None))  # the render's own time, on a GPU too
             dt = time.perf_counter() - t0
             img = r.image.clamp(0, 1)
             row = {"view": v, "xi": float(xi), "width": int(img.shape[1]), "height": int(img.shape[0]),

@@ -34,6 +34,7 @@ the split samples; the CPU kernels are deterministic).
 
 from __future__ import annotations
 
+import copy
 import math
 import os
 import time
@@ -43,6 +44,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from .devices import as_device
 from .errors import ProxycodecError
 from .formats.inria_ply import GaussianPly, rgb_to_sh_dc, write_inria_ply
 from .formats.splats import is_inria_ply
@@ -202,7 +204,7 @@ def densify_and_prune(params: dict[str, torch.Tensor], grads: torch.Tensor, *, g
     cand = high.nonzero().squeeze(1)
     if cand.numel() > budget:  # each clone or split adds one Gaussian: keep the highest gradients
         order = torch.sort(-grads[cand].double(), stable=True).indices
-        sel = torch.zeros(n, dtype=torch.bool)
+        sel = torch.zeros(n, dtype=torch.bool, device=grads.device)
         sel[cand[order[:budget]]] = True
         high = sel
     clone = high & small
@@ -213,7 +215,7 @@ def densify_and_prune(params: dict[str, torch.Tensor], grads: torch.Tensor, *, g
     ns = int(si.numel())
     if ns:
         s = torch.exp(p["scales"][si]).repeat(2, 1)  # [2 ns, 3] (3DGS's repeat(N, 1): all parents, twice)
-        samples = torch.from_numpy(rng.standard_normal((2 * ns, 3))).to(s.dtype) * s
+        samples = torch.from_numpy(rng.standard_normal((2 * ns, 3))).to(device=s.device, dtype=s.dtype) * s
         R = quat_to_rotmat(p["quats"][si]).repeat(2, 1, 1)
         child_means = (R @ samples[:, :, None]).squeeze(-1) + p["means"][si].repeat(2, 1)
         for k, v in p.items():
@@ -244,8 +246,9 @@ def cameras_extent(cameras) -> float:
     return r if r > 0 and math.isfinite(r) else 1.0
 
 
-def initial_gaussians(data, cfg: ExplicitConfig, rng: np.random.Generator) -> dict[str, torch.Tensor]:
-    """3DGS's ``create_from_pcd`` on SfM points (with colours) or random points in the dataset bounds (grey)."""
+def initial_gaussians(data, cfg: ExplicitConfig, rng: np.random.Generator, device=None) -> dict[str, torch.Tensor]:
+    """3DGS's ``create_from_pcd`` on SfM points (with colours) or random points in the dataset bounds (grey), on
+    ``device``."""
     pts, colors, _, _ = initial_points(data, cfg.init_points, rng, "Gaussians")
     colors = None if colors is None else colors / 255.0
     if data.points is not None and len(data.points) >= 8 and len(pts) > cfg.max_init_points:
@@ -260,12 +263,12 @@ def initial_gaussians(data, cfg: ExplicitConfig, rng: np.random.Generator) -> di
     logit = math.log(cfg.init_opacity / (1 - cfg.init_opacity))
     quats = np.zeros((n, 4))
     quats[:, 0] = 1.0
-    f = lambda a: torch.tensor(np.asarray(a), dtype=torch.float32)
+    f = lambda a: torch.tensor(np.asarray(a), dtype=torch.float32, device=device)  # noqa: E731
     return {
         "means": f(pts),
         "sh_dc": f(dc),
-        "sh_rest": torch.zeros(n, n_coef - 1, 3),
-        "opacities": torch.full((n,), logit),
+        "sh_rest": torch.zeros(n, n_coef - 1, 3, device=device),
+        "opacities": torch.full((n,), logit, device=device),
         "scales": f(np.repeat(np.log(knn_scale(pts))[:, None], 3, 1)),
         "quats": f(quats),
     }
@@ -275,20 +278,21 @@ def initial_gaussians(data, cfg: ExplicitConfig, rng: np.random.Generator) -> di
 class ExplicitTrainer(TrainingRun):
     """Owns the Gaussians, the optimiser and the densification statistics of one plain 3DGS run."""
 
-    def __init__(self, data, config: ExplicitConfig, log: ProgressFn | None = None):
+    def __init__(self, data, config: ExplicitConfig, log: ProgressFn | None = None, device=None):
         if not data.train_indices:
             raise ProxycodecError("the dataset has no training images")
         self.data = data
+        self.device = dev = as_device(device)
         self.cfg = config
         self.log = log or (lambda s: None)
-        self.bg = torch.tensor(data.background, dtype=torch.float32)
+        self.bg = torch.tensor(data.background, dtype=torch.float32, device=dev)
         self.rng = np.random.default_rng(config.seed)
         torch.manual_seed(config.seed)
-        self.images = TargetImages(data, config.image_cache_mb << 20)
+        self.images = TargetImages(data, config.image_cache_mb << 20, dev)
         self.extent = cameras_extent([data.cameras[i] for i in data.train_indices])
         self.opt = Adam()
         self.params: dict[str, torch.Tensor] = {}
-        for k, v in initial_gaussians(data, config, self.rng).items():
+        for k, v in initial_gaussians(data, config, self.rng, dev).items():
             self.params[k] = v.requires_grad_(True)
             self.opt.add(k, self.params[k])
         self._reset_stats()
@@ -302,8 +306,8 @@ class ExplicitTrainer(TrainingRun):
 
     def _reset_stats(self) -> None:
         n = self.num_gaussians
-        self.grad_accum = torch.zeros(n, dtype=torch.float64)
-        self.denom = torch.zeros(n, dtype=torch.float64)
+        self.grad_accum = torch.zeros(n, dtype=torch.float64, device=self.device)
+        self.denom = torch.zeros(n, dtype=torch.float64, device=self.device)
 
     # ------------------------------------------------------------------ schedule
     def densify_interval(self) -> int:
@@ -406,24 +410,25 @@ class ExplicitTrainer(TrainingRun):
     # ------------------------------------------------------------------ result
     @torch.no_grad()
     def result(self) -> GaussianPly:
-        q = {k: v.detach() for k, v in self.params.items()}
+        q = {k: v.detach().cpu() for k, v in self.params.items()}
         sh = torch.cat([q["sh_dc"], q["sh_rest"]], 1)
         return GaussianPly(q["means"].numpy(), sh.numpy(), q["opacities"].numpy(), q["scales"].numpy(),
                            q["quats"].numpy())
 
 
 def train_explicit(data, cfg: ExplicitConfig = ExplicitConfig(), log: ProgressFn | None = print, *,
-                   out: str | os.PathLike | None = None) -> GaussianPly:
-    """Train plain 3DGS on ``data`` (a ``PosedImages``); write ``out`` (INRIA PLY, atomic) when given."""
-    return run_explicit(data, cfg, log, out=out).result()
+                   out: str | os.PathLike | None = None, device=None) -> GaussianPly:
+    """Train plain 3DGS on ``data`` (a ``PosedImages``) on ``device`` (None: the CPU); write ``out`` (INRIA PLY,
+    atomic) when given."""
+    return run_explicit(data, cfg, log, out=out, device=device).result()
 
 
 def run_explicit(data, cfg: ExplicitConfig = ExplicitConfig(), log: ProgressFn | None = print, *,
-                 out: str | os.PathLike | None = None) -> ExplicitTrainer:
+                 out: str | os.PathLike | None = None, device=None) -> ExplicitTrainer:
     """``train_explicit`` returning the finished trainer (iterations, time, history, the Gaussians)."""
     log = log or (lambda s: None)
     t_setup = time.perf_counter()
-    tr = ExplicitTrainer(data, cfg, log)
+    tr = ExplicitTrainer(data, cfg, log, device)
     log(f"fit --explicit (plain 3DGS): {len(data.train_indices)} training views, {tr.num_gaussians} initial "
         f"Gaussians, extent {tr.extent:.3g}, SH degree {cfg.sh_degree}, setup {time.perf_counter() - t_setup:.1f} s; "
         f"iters {cfg.iters}, time budget {cfg.time_budget}")
@@ -495,6 +500,19 @@ class ExplicitModel:
     @property
     def num_gaussians(self) -> int:
         return self.ply.n_gaussians
+
+    @property
+    def device(self) -> torch.device:
+        return self._means.device
+
+    def to(self, device) -> ExplicitModel:
+        """This model rendering on ``device`` (a copy; itself when already there)."""
+        if torch.device(device) == self.device:
+            return self
+        out = copy.copy(self)
+        for k in ("_means", "_sh", "_op", "_scales", "_quats"):
+            setattr(out, k, getattr(self, k).to(device))
+        return out
 
     @property
     def scene(self) -> _ExplicitInfo:

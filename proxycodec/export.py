@@ -189,15 +189,17 @@ def bake(model, cfg: BakeConfig = BakeConfig(), *, cameras: list[Camera] | None 
         raise ProxycodecError(f"view {cfg.view} does not exist ({len(model.cameras or [])} stored cameras)")
     if not views:
         raise ProxycodecError("no views to decode the scene from")
-    seen = torch.zeros(S, dtype=torch.float64)
-    w_sum = torch.zeros(S, dtype=torch.float64)
-    ls_sum = torch.zeros(S, 3, dtype=torch.float64)
-    q_sum = torch.zeros(S, 4, dtype=torch.float64)
-    q_ref = torch.zeros(S, 4, dtype=torch.float64)
-    has_ref = torch.zeros(S, dtype=torch.bool)
-    A = torch.zeros(S, nc, nc, dtype=torch.float64)
-    b = torch.zeros(S, nc, 3, dtype=torch.float64)
-    baked_dc = torch.full((S, 3), float("nan"), dtype=torch.float64)
+    dev = s.positions.device  # baked where the scene lies
+    f64 = dict(dtype=torch.float64, device=dev)
+    seen = torch.zeros(S, **f64)
+    w_sum = torch.zeros(S, **f64)
+    ls_sum = torch.zeros(S, 3, **f64)
+    q_sum = torch.zeros(S, 4, **f64)
+    q_ref = torch.zeros(S, 4, **f64)
+    has_ref = torch.zeros(S, dtype=torch.bool, device=dev)
+    A = torch.zeros(S, nc, nc, **f64)
+    b = torch.zeros(S, nc, 3, **f64)
+    baked_dc = torch.full((S, 3), float("nan"), **f64)
     # Centres do not depend on the view: x_v + O_k exp(l[0:3]), in float64.
     all_means = (s.positions.detach().double()[:, None, :] + s.offsets.detach().double()
                  * torch.exp(s.scalings.detach().double()[:, None, :3])).reshape(S, 3)
@@ -208,17 +210,17 @@ def bake(model, cfg: BakeConfig = BakeConfig(), *, cameras: list[Camera] | None 
         for cam in views:
             cx = cam.scaled(cfg.xi)
             g, vis = decode_view(s, dec, cx, cfg.xi)
-            slots_all = (vis[:, None] * K + torch.arange(K)).reshape(-1)
-            seen.index_add_(0, slots_all, torch.ones(slots_all.shape[0], dtype=torch.float64))
+            slots_all = (vis[:, None] * K + torch.arange(K, device=dev)).reshape(-1)
+            seen.index_add_(0, slots_all, torch.ones(slots_all.shape[0], **f64))
             if g.count == 0:
                 continue
             slot = g.anchor_index * K + g.slot
             proj = project_gaussians(g.means, g.quats, g.scales, torch.ones_like(g.opacities), g.colors, cx,
                                      gate=dec.config.gate, near=dec.config.near_plane(), origin=g.origin)
-            shown = torch.zeros(g.count, dtype=torch.bool)
+            shown = torch.zeros(g.count, dtype=torch.bool, device=dev)
             shown[proj.index] = True
             # Decoded but outside the image: not seen from this view after all.
-            seen.index_add_(0, slot[~shown], -torch.ones(int((~shown).sum()), dtype=torch.float64))
+            seen.index_add_(0, slot[~shown], -torch.ones(int((~shown).sum()), **f64))
             i = proj.index
             si = slot[i]
             w = (g.opacities[i] * proj.gate).double()
@@ -234,7 +236,7 @@ def bake(model, cfg: BakeConfig = BakeConfig(), *, cameras: list[Camera] | None 
             c = g.colors[i].double()
             if cam is view_cam:
                 baked_dc[si] = c
-            d = all_means[si] - torch.as_tensor(cam.center, dtype=torch.float64)
+            d = all_means[si] - torch.as_tensor(cam.center, **f64)
             d = d / d.norm(dim=1, keepdim=True).clamp_min(1e-12)
             Y = _sh_basis(degree, d)
             A.index_add_(0, si, w[:, None, None] * Y[:, :, None] * Y[:, None, :])
@@ -245,7 +247,7 @@ def bake(model, cfg: BakeConfig = BakeConfig(), *, cameras: list[Camera] | None 
     keep = (opacity >= cfg.min_opacity) & (w_sum > 0)
     idx = keep.nonzero().squeeze(1)
     ws = w_sum[idx]
-    reg = torch.full((nc,), cfg.ridge, dtype=torch.float64)
+    reg = torch.full((nc,), cfg.ridge, **f64)
     reg[0] = 1e-9
     Ak = A[idx] + (ws[:, None, None] * torch.diag(reg)[None])
     coef = torch.linalg.solve(Ak, b[idx])  # [n, nc, 3]
@@ -256,14 +258,14 @@ def bake(model, cfg: BakeConfig = BakeConfig(), *, cameras: list[Camera] | None 
         coef = ((dc - 0.5) / SH_C0)[:, None, :]
     q = q_sum[idx]
     qn = q.norm(dim=1, keepdim=True)
-    q = torch.where(qn > 1e-12, q / qn.clamp_min(1e-12), torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=torch.float64))
+    q = torch.where(qn > 1e-12, q / qn.clamp_min(1e-12), torch.tensor([1.0, 0.0, 0.0, 0.0], **f64))
     op = opacity[idx].clamp(1e-6, 1 - 1e-6)
     ply = GaussianPly(
-        means=all_means[idx].float().numpy(),
-        sh=coef.float().numpy(),
-        opacities=torch.log(op / (1 - op)).float().numpy(),
-        scales=(ls_sum[idx] / ws[:, None]).float().numpy(),
-        quats=q.float().numpy(),
+        means=all_means[idx].float().cpu().numpy(),
+        sh=coef.float().cpu().numpy(),
+        opacities=torch.log(op / (1 - op)).float().cpu().numpy(),
+        scales=(ls_sum[idx] / ws[:, None]).float().cpu().numpy(),
+        quats=q.float().cpu().numpy(),
         has_normals=True,
     )
     info = {

@@ -20,8 +20,9 @@ from collections.abc import Callable
 import numpy as np
 import torch
 
+from .devices import CPU, as_device
 from .errors import ProxycodecError
-from .metrics import dssim, mse_to_psnr
+from .metrics import dssim
 
 __all__ = [
     "ProgressFn", "TargetImages", "TrainingRun", "check_run_length", "fmt_time", "initial_points", "knn_scale",
@@ -84,21 +85,27 @@ class TargetImages:
     dataset's anti-aliased reference, so a target is the area average of the reference (within float16 rounding,
     < 5e-4) rather than of the file's pixels directly; evaluation always uses ``load_image``.
 
+    On a CUDA ``device`` the reference is uploaded once (the cache holds device tensors) and resized there by the
+    same filter's weights (``resize_torch``), so an iteration moves no image between host and device.
+
     Any object with ``get(view, xi) -> [h, w, 3] tensor`` can stand in for it (e.g. a teacher scene's renders).
     """
 
-    def __init__(self, data, max_bytes: int):
+    def __init__(self, data, max_bytes: int, device: torch.device | str | None = None):
         self.data = data
         self.max_bytes = int(max_bytes)
-        self.items: OrderedDict[int, np.ndarray] = OrderedDict()
+        self.device = as_device(device)
+        self.items: OrderedDict[int, np.ndarray | torch.Tensor] = OrderedDict()
         self.nbytes = 0
 
-    def reference(self, i: int) -> np.ndarray:
+    def reference(self, i: int) -> np.ndarray | torch.Tensor:
         a = self.items.get(i)
         if a is not None:
             self.items.move_to_end(i)
             return a
         a = self.data.load_image(i, 1.0).numpy().astype(np.float16)
+        if self.device.type != CPU:
+            a = torch.from_numpy(a).to(self.device)
         if a.nbytes <= self.max_bytes:
             self.items[i] = a
             self.nbytes += a.nbytes
@@ -112,7 +119,54 @@ class TargetImages:
 
         ref = self.reference(i)
         w, h = self.data.image_size(i, xi)
+        if isinstance(ref, torch.Tensor):
+            return resize_torch(ref.float(), w, h)
         return torch.from_numpy(resize_image(ref.astype(np.float32), w, h))
+
+
+def _pil_filter(kind: str):
+    if kind == "box":
+        return 0.5, lambda x: np.where((x > -0.5) & (x <= 0.5), 1.0, 0.0)
+    a = -0.5  # PIL's bicubic
+
+    def cubic(x):
+        x = np.abs(x)
+        return np.where(x < 1.0, ((a + 2.0) * x - (a + 3.0)) * x * x + 1.0,
+                        np.where(x < 2.0, (((x - 5.0) * x + 8.0) * x - 4.0) * a, 0.0))
+
+    return 2.0, cubic
+
+
+def resize_weights(n_in: int, n_out: int) -> np.ndarray:
+    """[n_out, n_in] float64: the 1D weights PIL's resampler uses to resize ``n_in`` pixels to ``n_out`` (BOX when
+    shrinking, BICUBIC when enlarging, as ``resize_image``; Pillow's ``precompute_coeffs``), so an image resizes
+    as ``Wy @ image @ Wx^T``."""
+    support, f = _pil_filter("box" if n_out <= n_in else "bicubic")
+    scale = n_in / n_out
+    fscale = max(scale, 1.0)
+    support *= fscale
+    W = np.zeros((n_out, n_in))
+    for j in range(n_out):
+        center = (j + 0.5) * scale
+        lo = max(int(center - support + 0.5), 0)
+        hi = min(int(center + support + 0.5), n_in)
+        k = f((np.arange(lo, hi) - center + 0.5) / fscale)
+        if k.sum() != 0:
+            k = k / k.sum()
+        W[j, lo:hi] = k
+    return W
+
+
+def resize_torch(rgb: torch.Tensor, width: int, height: int) -> torch.Tensor:
+    """``formats.images.resize_image`` on a torch tensor [H, W, C] where it lies (float32 rounding apart): the
+    same filter weights applied as two matrix products."""
+    h0, w0 = rgb.shape[:2]
+    if (w0, h0) == (width, height):
+        return rgb.float().contiguous()
+    wy = torch.from_numpy(resize_weights(h0, height)).to(device=rgb.device, dtype=torch.float32)
+    wx = torch.from_numpy(resize_weights(w0, width)).to(device=rgb.device, dtype=torch.float32)
+    out = torch.einsum("yh,hwc,xw->yxc", wy, rgb.float(), wx)
+    return out if (width <= w0 and height <= h0) else out.clamp(0.0, 1.0)
 
 
 # ================================================================================================ one iteration
@@ -125,7 +179,7 @@ def photometric_loss(img: torch.Tensor, gt: torch.Tensor, lambda_dssim: float) -
 def ndc_grad_norm(grad: torch.Tensor, width: int, height: int) -> torch.Tensor:
     """[N] float64 |d loss / d mean2D| in 3DGS's NDC-like units (d/d(ndc) = d/d(pixel) * size / 2), which its
     densification thresholds (0.0002) are stated in."""
-    return (grad.double() * torch.tensor([0.5 * width, 0.5 * height], dtype=torch.float64)).norm(dim=1)
+    return (grad.double() * grad.new_tensor([0.5 * width, 0.5 * height], dtype=torch.float64)).norm(dim=1)
 
 
 class TrainingRun:
@@ -206,9 +260,11 @@ class TrainingRun:
 
     @staticmethod
     def step_stats(loss: torch.Tensor, img: torch.Tensor, gt: torch.Tensor) -> dict:
+        """The step's loss and squared error as 0-d tensors where they were computed: read back (a device sync)
+        only when a progress line is written."""
         with torch.no_grad():
-            mse = float(((img.detach().clamp(0, 1) - gt) ** 2).mean())
-        return {"loss": float(loss.detach()), "psnr": mse_to_psnr(max(mse, 1e-10))}
+            mse = ((img.detach().clamp(0, 1) - gt) ** 2).mean()
+        return {"loss": loss.detach(), "mse": mse}
 
 
 # ================================================================================================ resolution sampling
@@ -246,17 +302,21 @@ def timed_step(tr: TrainingRun, log_every: float, last_log: float, log: Progress
     t0 = time.perf_counter()
     st = tr.train_step()
     tr.elapsed += time.perf_counter() - t0
+    # running means as float64 tensors on the step's device: nothing is read back until a line is written
+    loss = st["loss"].double()
+    psnr = 10.0 * torch.log10(1.0 / st["mse"].double().clamp_min(1e-10))
     a = 0.05 if tr.ema_loss is not None else 1.0
-    tr.ema_loss = st["loss"] if tr.ema_loss is None else (1 - a) * tr.ema_loss + a * st["loss"]
-    tr.ema_psnr = st["psnr"] if tr.ema_psnr is None else (1 - a) * tr.ema_psnr + a * st["psnr"]
+    tr.ema_loss = loss if tr.ema_loss is None else (1 - a) * tr.ema_loss + a * loss
+    tr.ema_psnr = psnr if tr.ema_psnr is None else (1 - a) * tr.ema_psnr + a * psnr
     if not (time.perf_counter() - last_log >= log_every or tr.done() or tr.iteration == 1):
         return st, False
     p = tr.progress()
     eta = tr.elapsed * (1 - p) / max(p, 1e-9)
     total = tr.cfg.iters if tr.cfg.iters is not None else "?"
-    log(f"it {tr.iteration:6d}/{total}  loss {tr.ema_loss:.4f}  psnr {tr.ema_psnr:5.2f}  {detail(st)}  "
+    ema_loss, ema_psnr = float(tr.ema_loss), float(tr.ema_psnr)
+    log(f"it {tr.iteration:6d}/{total}  loss {ema_loss:.4f}  psnr {ema_psnr:5.2f}  {detail(st)}  "
         f"{fmt_time(tr.elapsed)} elapsed  eta {fmt_time(eta)}")
-    tr.history.append({"it": tr.iteration, "loss": round(tr.ema_loss, 6), "psnr": round(tr.ema_psnr, 4),
+    tr.history.append({"it": tr.iteration, "loss": round(ema_loss, 6), "psnr": round(ema_psnr, 4),
                        **hist_extra(), "seconds": round(tr.elapsed, 2)})
     return st, True
 

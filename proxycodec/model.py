@@ -7,6 +7,7 @@ renders it with nothing else. Nothing is ever unpickled.
 
 from __future__ import annotations
 
+import copy
 import os
 import zlib
 from dataclasses import dataclass, field, replace
@@ -89,6 +90,16 @@ class SceneModel:
     cameras: list[Camera] | None = None
     background: tuple[float, float, float] = (1.0, 1.0, 1.0)
     meta: dict = field(default_factory=dict)  # the weights sidecar's metadata when loaded from files
+
+    @property
+    def device(self) -> torch.device:
+        return self.scene.positions.device
+
+    def to(self, device) -> SceneModel:
+        """This model on ``device`` (a copy: this one stays where it is; itself when already there)."""
+        if torch.device(device) == self.device:
+            return self
+        return replace(self, scene=self.scene.to(device), decoder=copy.deepcopy(self.decoder).to(device))
 
     def render(self, camera: Camera, xi: float = 1.0, *, backend: str = "auto",
                size: tuple[int, int] | None = None) -> SceneRender:

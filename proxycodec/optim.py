@@ -56,7 +56,7 @@ class Adam:
         if keep is not None:
             m, v = m[keep], v[keep]
         if append:
-            z = torch.zeros((append,) + tuple(m.shape[1:]), dtype=m.dtype)
+            z = m.new_zeros((append,) + tuple(m.shape[1:]))
             m, v = torch.cat([m, z]), torch.cat([v, z])
         self.m[name], self.v[name] = m.contiguous(), v.contiguous()
         self.params[name] = p
@@ -84,8 +84,8 @@ class Adam:
     def state_arrays(self) -> dict[str, np.ndarray]:
         out = {}
         for name in self.params:
-            out[f"adam_m/{name}"] = self.m[name].numpy().copy()
-            out[f"adam_v/{name}"] = self.v[name].numpy().copy()
+            out[f"adam_m/{name}"] = self.m[name].cpu().numpy().copy()
+            out[f"adam_v/{name}"] = self.v[name].cpu().numpy().copy()
         return out
 
     def load_arrays(self, arrays: dict[str, np.ndarray], steps: dict[str, int]) -> None:
@@ -94,5 +94,5 @@ class Adam:
                 a = arrays.get(f"{kind}/{name}")
                 if a is None or tuple(a.shape) != tuple(p.shape):
                     raise ProxycodecError(f"checkpoint optimiser state {kind}/{name} is missing or has a wrong shape")
-                store[name] = torch.from_numpy(np.array(a, dtype=np.float32))
+                store[name] = torch.from_numpy(np.array(a, dtype=np.float32)).to(p.device)
             self.step_count[name] = int(steps.get(name, 0))

@@ -30,6 +30,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from .devices import module_device
 from .decoder import positional_encoding
 from . import nearest as _nearest
 from .errors import ProxycodecError
@@ -501,11 +502,15 @@ def train_predictor(
     ``recon``: the L_recon variant (``RECON_LOSSES``). ``predictor`` may also be a :class:`ProxyLeafMLP`."""
     t0 = time.perf_counter()
     cfg = predictor.config
-    mask = torch.as_tensor(np.asarray(proxy_mask, dtype=bool))
+    dev = positions.device  # the predictor is trained where the scene lies
+    predictor.to(dev)
+    mask_np = np.asarray(proxy_mask.cpu() if isinstance(proxy_mask, torch.Tensor) else proxy_mask, dtype=bool)
+    mask = torch.from_numpy(mask_np).to(dev)
     context = 1 if isinstance(predictor, ProxyLeafMLP) else cfg.context
     if nearest is None:
-        nearest = nearest_proxies(positions, mask.numpy(), context, cfg.ties)
-    nearest = torch.as_tensor(np.asarray(nearest), dtype=torch.long)
+        nearest = nearest_proxies(positions, mask_np, context, cfg.ties)
+    nearest = torch.as_tensor(np.asarray(nearest.cpu() if isinstance(nearest, torch.Tensor) else nearest),
+                              dtype=torch.long).to(dev)
     leaves = (~mask).nonzero().squeeze(1)
     positions = positions.detach().float()
     features = features.detach().float()
@@ -547,7 +552,7 @@ def _train(predictor, loss_of, L, config, progress, progress_every, t0) -> Train
     for it in range(1, config.iters + 1):
         t = (it - 1) / max(1, config.iters - 1)
         lr = config.lr_final + 0.5 * (config.lr - config.lr_final) * (1 + math.cos(math.pi * t))
-        idx = torch.randperm(L, generator=gen)[:n]
+        idx = torch.randperm(L, generator=gen)[:n].to(module_device(predictor))
         loss = loss_of(idx)
         opt.zero_grad()
         loss.backward()

@@ -24,6 +24,7 @@ import numpy as np
 import torch
 
 from .camera import check_xi
+from .devices import as_device
 from .errors import ProxycodecError
 from .formats.container import MAGIC
 from .model import SceneModel, weights_path_for
@@ -71,7 +72,7 @@ class FeatureField:
     source: str = ""
 
     @classmethod
-    def open(cls, source, *, predictor=None, proxy_mask=None) -> FeatureField:
+    def open(cls, source, *, predictor=None, proxy_mask=None, device=None) -> FeatureField:
         from . import codec
 
         name = ""
@@ -112,10 +113,15 @@ class FeatureField:
         if mask.shape != (s.num_anchors,) or mask.dtype != bool or not mask.any():
             raise ProxycodecError(f"the proxy mask must be [{s.num_anchors}] booleans with at least one proxy, got "
                                   f"{mask.dtype} {mask.shape}")
-        idx = torch.from_numpy(np.flatnonzero(mask))
-        return cls(s.positions.detach()[idx].float(), s.features.detach()[idx].float(),
-                   s.offsets.detach()[idx].float(), predictor.eval(), source.decoder.eval(), s.bounds(), float(s.voxel_size),
-                   name)
+        idx = torch.from_numpy(np.flatnonzero(mask)).to(s.positions.device)
+        dev = s.positions.device if device is None else as_device(device)
+        return cls(s.positions.detach()[idx].float().to(dev), s.features.detach()[idx].float().to(dev),
+                   s.offsets.detach()[idx].float().to(dev), predictor.eval().to(dev), source.decoder.eval().to(dev),
+                   s.bounds(), float(s.voxel_size), name)
+
+    @property
+    def device(self) -> torch.device:
+        return self.proxy_positions.device
 
     @property
     def feat_dim(self) -> int:
@@ -125,38 +131,39 @@ class FeatureField:
         """[N, F] predicted features at ``points`` before the resolution embedding (xi-independent)."""
         from .proxy import torch_threads
 
-        q = torch.from_numpy(_check_points(points))
+        dev = self.device
+        q = torch.from_numpy(_check_points(points)).to(dev)
         P, N = self.proxy_positions.shape[0], q.shape[0]
-        out = torch.empty(N, self.feat_dim)
+        out = torch.empty(N, self.feat_dim, device=dev)
         if N == 0:
-            return out.numpy()
+            return out.cpu().numpy()
         pos = torch.cat([self.proxy_positions, q])
-        feats = torch.cat([self.proxy_features, torch.zeros(N, self.feat_dim)])
-        offs = torch.cat([self.proxy_offsets, torch.zeros((N,) + tuple(self.proxy_offsets.shape[1:]))])
+        feats = torch.cat([self.proxy_features, self.proxy_features.new_zeros(N, self.feat_dim)])
+        offs = torch.cat([self.proxy_offsets, self.proxy_offsets.new_zeros((N,) + tuple(self.proxy_offsets.shape[1:]))])
         pcfg = getattr(self.predictor, "config", None)
         context, ties = int(getattr(pcfg, "context", 1)), getattr(pcfg, "ties", "index")
         mask = np.zeros(P + N, dtype=bool)
         mask[:P] = True  # the proxies, in their stored order: ties go to the same proxy as in decoding
-        nearest = torch.from_numpy(nearest_proxies(pos.numpy(), mask, context, ties))
+        nearest = torch.from_numpy(nearest_proxies(pos.cpu().numpy(), mask, context, ties)).to(dev)
         with torch.no_grad(), torch_threads(1):  # fixed thread count, as the decoder regenerates leaves
             for s in range(0, N, PREDICT_CHUNK):
-                rows = torch.arange(P + s, P + min(N, s + PREDICT_CHUNK))
+                rows = torch.arange(P + s, P + min(N, s + PREDICT_CHUNK), device=dev)
                 out[s:s + len(rows)] = self.predictor.predict(pos, feats, nearest, rows, offs)[0]
         if exact_proxies:
             near = nearest[P:, 0]
             at = (pos[P:] == pos[near]).all(1)
             out[at] = self.proxy_features[near[at]]
-        return out.numpy()
+        return out.cpu().numpy()
 
     def embed(self, points, features, xi: float) -> np.ndarray:
         """The resolution embedding (FiLM) at ``xi`` of ``features`` [N, F] located at ``points``."""
         xi = check_xi(xi)
-        q = torch.from_numpy(_check_points(points))
-        f = torch.as_tensor(np.asarray(features, dtype=np.float32))
+        q = torch.from_numpy(_check_points(points)).to(self.device)
+        f = torch.as_tensor(np.asarray(features, dtype=np.float32), device=self.device)
         if f.shape != (q.shape[0], self.feat_dim):
             raise ProxycodecError(f"features must be [{q.shape[0]}, {self.feat_dim}], got {tuple(f.shape)}")
         with torch.no_grad():
-            return self.decoder.embed(q, f, xi).numpy()
+            return self.decoder.embed(q, f, xi).cpu().numpy()
 
     def query(self, points, xi: float, exact_proxies: bool = True) -> np.ndarray:
         """[N, F] float32: the features an anchor at each point would have, embedded at resolution ratio ``xi``."""
@@ -165,8 +172,9 @@ class FeatureField:
 
 
 def query_features(scene_or_container, points, xi: float, *, predictor=None, proxy_mask=None,
-                   exact_proxies: bool = True) -> np.ndarray:
+                   exact_proxies: bool = True, device=None) -> np.ndarray:
     """[N, F] float32 anchor features predicted at ``points`` ([N, 3]) and embedded at resolution ratio ``xi``: nearest
-    proxies + residual predictor + FiLM (module docstring). ``scene_or_container``: see :class:`FeatureField`."""
-    field = FeatureField.open(scene_or_container, predictor=predictor, proxy_mask=proxy_mask)
+    proxies + residual predictor + FiLM (module docstring). ``scene_or_container``: see :class:`FeatureField`.
+    ``device``: where the predictor and the embedding run (None: where the scene lies; files load on the CPU)."""
+    field = FeatureField.open(scene_or_container, predictor=predictor, proxy_mask=proxy_mask, device=device)
     return field.query(points, xi, exact_proxies)

@@ -13,6 +13,7 @@ import math
 import numpy as np
 import torch
 
+from .devices import as_device
 from .loop import ndc_grad_norm
 
 __all__ = ["ScaffoldStrategy"]
@@ -29,8 +30,9 @@ class ScaffoldStrategy:
     ``min_opacity``, ``update_depth``, ``update_init_factor``, ``update_hierarchy_factor``, ``max_anchors``.
     """
 
-    def __init__(self, cfg, num_anchors: int, n_offsets: int, log=None):
+    def __init__(self, cfg, num_anchors: int, n_offsets: int, log=None, device=None):
         self.cfg = cfg
+        self.device = as_device(device)
         self.K = int(n_offsets)
         self.log = log or (lambda s: None)
         self.last_adjust = 0
@@ -38,18 +40,19 @@ class ScaffoldStrategy:
 
     def reset(self, num_anchors: int) -> None:
         M, K = num_anchors, self.K
-        self.opacity_accum = torch.zeros(M, dtype=torch.float64)
-        self.anchor_denom = torch.zeros(M, dtype=torch.float64)
-        self.offset_grad_accum = torch.zeros(M * K, dtype=torch.float64)
-        self.offset_denom = torch.zeros(M * K, dtype=torch.float64)
+        z = dict(dtype=torch.float64, device=self.device)
+        self.opacity_accum = torch.zeros(M, **z)
+        self.anchor_denom = torch.zeros(M, **z)
+        self.offset_grad_accum = torch.zeros(M * K, **z)
+        self.offset_denom = torch.zeros(M * K, **z)
 
     # ------------------------------------------------------------------ checkpoints
     def state_arrays(self) -> dict[str, np.ndarray]:
-        return {f"stats/{k}": getattr(self, k).numpy().copy() for k in STAT_NAMES}
+        return {f"stats/{k}": getattr(self, k).cpu().numpy().copy() for k in STAT_NAMES}
 
     def load_arrays(self, arrays: dict[str, np.ndarray], last_adjust: int) -> None:
         for k in STAT_NAMES:
-            setattr(self, k, torch.from_numpy(np.array(arrays[f"stats/{k}"])))
+            setattr(self, k, torch.from_numpy(np.array(arrays[f"stats/{k}"])).to(self.device))
         self.last_adjust = int(last_adjust)
 
     # ------------------------------------------------------------------ statistics
@@ -104,10 +107,10 @@ class ScaffoldStrategy:
         # Reset the gradient statistics of the offsets that were judged; new anchors start at zero.
         self.offset_denom[offset_mask] = 0
         self.offset_grad_accum[offset_mask] = 0
-        pad = torch.zeros(n_new * K, dtype=torch.float64)
+        pad = self.offset_denom.new_zeros(n_new * K)
         self.offset_denom = torch.cat([self.offset_denom, pad])
         self.offset_grad_accum = torch.cat([self.offset_grad_accum, pad])
-        padm = torch.zeros(n_new, dtype=torch.float64)
+        padm = self.opacity_accum.new_zeros(n_new)
         self.opacity_accum = torch.cat([self.opacity_accum, padm])
         self.anchor_denom = torch.cat([self.anchor_denom, padm])
         prune = self.opacity_accum < c.min_opacity * self.anchor_denom
@@ -125,7 +128,7 @@ class ScaffoldStrategy:
         anchors.keep(keep)
         for k, t in anchors.tensors().items():
             opt.rebind(k, t, keep=keep)
-        flat = (keep[:, None] * K + torch.arange(K)).reshape(-1)
+        flat = (keep[:, None] * K + torch.arange(K, device=keep.device)).reshape(-1)
         self.offset_grad_accum = self.offset_grad_accum[flat]
         self.offset_denom = self.offset_denom[flat]
         self.opacity_accum = self.opacity_accum[keep]
@@ -138,13 +141,13 @@ class ScaffoldStrategy:
         for i in range(c.update_depth):
             threshold = c.grad_threshold * ((c.update_hierarchy_factor // 2) ** i)
             cand = (grads >= threshold) & offset_mask
-            rand = torch.from_numpy(rng.random(cand.shape[0]) > 0.5 ** (i + 1))
+            rand = torch.from_numpy(rng.random(cand.shape[0]) > 0.5 ** (i + 1)).to(cand.device)
             cand = cand & rand
             inc = a.num_anchors * K - init_len
             if inc == 0 and i > 0:
                 continue
             if inc:
-                cand = torch.cat([cand, torch.zeros(inc, dtype=torch.bool)])
+                cand = torch.cat([cand, cand.new_zeros(inc)])
             if not bool(cand.any()):
                 continue
             all_xyz = a.positions[:, None, :] + a.offsets.detach() * torch.exp(a.scalings.detach()[:, None, :3])
@@ -155,7 +158,8 @@ class ScaffoldStrategy:
             uniq, inverse = torch.unique(sel_grid, return_inverse=True, dim=0)
             # Drop cells that already hold an anchor (exact integer-cell comparison via a hashed key).
             existing = set(map(tuple, grid.tolist()))
-            new_mask = torch.tensor([tuple(u) not in existing for u in uniq.tolist()], dtype=torch.bool)
+            new_mask = torch.tensor([tuple(u) not in existing for u in uniq.tolist()], dtype=torch.bool,
+                                    device=uniq.device)
             if not bool(new_mask.any()):
                 continue
             new_pos = uniq[new_mask].double() * size
@@ -166,12 +170,12 @@ class ScaffoldStrategy:
                     return
             feats_rep = a.features.detach()[:, None, :].expand(-1, K, -1).reshape(-1, a.features.shape[1])[cand]
             Fd = feats_rep.shape[1]
-            pooled = torch.full((uniq.shape[0], Fd), -torch.inf).scatter_reduce(
+            pooled = feats_rep.new_full((uniq.shape[0], Fd), -torch.inf).scatter_reduce(
                 0, inverse[:, None].expand(-1, Fd), feats_rep, reduce="amax", include_self=True)
             new_feat = pooled[new_mask][:n]
             new_pos = new_pos[:n].float()
-            new_scal = torch.full((n, 6), math.log(size), dtype=torch.float32)
-            new_off = torch.zeros(n, K, 3)
+            new_scal = a.positions.new_full((n, 6), math.log(size))
+            new_off = a.positions.new_zeros(n, K, 3)
             a.append(new_pos, new_feat, new_off, new_scal)
             for k, t in a.tensors().items():
                 opt.rebind(k, t, append=n)

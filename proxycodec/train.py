@@ -35,6 +35,7 @@ import torch
 
 from .camera import Camera
 from .decoder import DecoderConfig, GaussianDecoder, visible_anchors
+from .devices import as_device, generator
 from .entropy_fit import RateModel
 from .errors import ProxycodecError
 from .formats.container import read_container, write_container
@@ -356,39 +357,43 @@ class Trainer(TrainingRun):
     """Owns the anchors, the decoder, the predictor, the optimiser and the growing strategy of one fit."""
 
     def __init__(self, data, config: FitConfig, dataset_root: str = "", log: ProgressFn | None = None, *,
-                 start: SceneModel | None = None, start_proxies: tuple | None = None):
+                 start: SceneModel | None = None, start_proxies: tuple | None = None, device=None):
         """``start``: fine-tune this scene (its anchors and decoder; the anchor set stays as it is when
         ``config.update_until`` is 0) instead of growing one from the dataset's points. ``start_proxies``:
-        (residual predictor, proxy mask) that stage 2 then starts from instead of selecting proxies afresh."""
+        (residual predictor, proxy mask) that stage 2 then starts from instead of selecting proxies afresh.
+        ``device``: where the run computes (None: the CPU); the result's scene and decoder are left there."""
         self.data = data
+        self.device = dev = as_device(device)
         self.cfg = config
         self.dataset_root = dataset_root
         self.log = log or (lambda s: None)
-        self.bg = torch.tensor(data.background, dtype=torch.float32)
+        self.bg = torch.tensor(data.background, dtype=torch.float32, device=dev)
         if not data.train_indices:
             raise ProxycodecError("the dataset has no training images")
         self.rng = np.random.default_rng(config.seed)
         # a dataset that makes its own targets (a teacher scene's renders: ``distill.TeacherViews``) hands them over
         make_targets = getattr(data, "targets", None)
-        self.images = (make_targets or (lambda n: TargetImages(data, n)))(config.image_cache_mb << 20)
+        self.images = (make_targets or (lambda n: TargetImages(data, n, dev)))(config.image_cache_mb << 20)
         torch.manual_seed(config.seed)
         if start is None:
             anchors, voxel, center, radius = initial_anchors(data, config, self.rng)
             M, K, Fd = len(anchors), config.n_offsets, config.feat_dim
             scale = np.log(knn_scale(anchors))
             self.anchors = TrainableAnchors(
-                torch.tensor(anchors, dtype=torch.float32), torch.zeros(M, Fd), torch.zeros(M, K, 3),
-                torch.tensor(np.repeat(scale[:, None], 6, 1), dtype=torch.float32), voxel)
-            self.decoder = GaussianDecoder(config.decoder_config(center, radius))
+                torch.tensor(anchors, dtype=torch.float32, device=dev), torch.zeros(M, Fd, device=dev),
+                torch.zeros(M, K, 3, device=dev),
+                torch.tensor(np.repeat(scale[:, None], 6, 1), dtype=torch.float32, device=dev), voxel)
+            self.decoder = GaussianDecoder(config.decoder_config(center, radius)).to(dev)
             with torch.no_grad():  # Gaussians start visible (see FitConfig.opacity_bias_init)
                 self.decoder.mlp_opacity[-1].bias.add_(config.opacity_bias_init)
         else:
             s = start.scene
-            self.anchors = TrainableAnchors(s.positions, s.features, s.offsets, s.scalings, s.voxel_size)
+            self.anchors = TrainableAnchors(*(t.to(dev) for t in (s.positions, s.features, s.offsets, s.scalings)),
+                                            s.voxel_size)
             dcfg = start.decoder.config
             if not config.fixed_res:  # the embedding is now trained over the configured band
                 dcfg = replace(dcfg, film_xi_range=(config.xi_min, config.xi_max))
-            self.decoder = GaussianDecoder.from_arrays(dcfg, start.decoder.state_arrays())
+            self.decoder = GaussianDecoder.from_arrays(dcfg, start.decoder.state_arrays()).to(dev)
         self.start_proxies = start_proxies
         self.predictor = None
         self.proxy_mask: torch.Tensor | None = None  # [M] bool
@@ -398,7 +403,7 @@ class Trainer(TrainingRun):
         self.leaves: torch.Tensor | None = None  # [L] long
         self.rate: RateModel | None = None  # stage 2 with lambda_rate > 0
         self.opt = self._optimiser()
-        self.strategy = ScaffoldStrategy(config, self.anchors.num_anchors, self.anchors.n_offsets, self.log)
+        self.strategy = ScaffoldStrategy(config, self.anchors.num_anchors, self.anchors.n_offsets, self.log, dev)
         self._start_run()
         self.stage = 1
 
@@ -461,7 +466,7 @@ class Trainer(TrainingRun):
         if self.rate is not None:  # the attributes on their quantisation grids, and their rate
             a = self.anchors
             # its noise and sample from a generator seeded by the run's rng: checkpointed, so a resumed run is the same
-            gen = torch.Generator().manual_seed(int(self.rng.integers(1 << 62)))
+            gen = generator(self.device, int(self.rng.integers(1 << 62)))
             f_q, o_q, s_q, bits = self.rate(a.features, a.offsets, a.scalings, generator=gen)
             rounded = f_q, o_q
             scene = replace(scene, features=f_q, offsets=o_q, scalings=s_q)
@@ -486,7 +491,7 @@ class Trainer(TrainingRun):
         predicted; and L_recon (0 without computing it when ``with_recon`` is False, i.e. its weight is 0: the
         leaf sample is still drawn, so the random stream does not depend on the weight). ``rounded``: (features,
         offsets) on their quantisation grids (rate training), rendered and fed to the predictor instead."""
-        zero = torch.zeros(())
+        zero = torch.zeros((), device=self.device)
         if self.stage < 2 or self.predictor is None:
             return (None, None, zero) if rounded is None else (*rounded, zero)
         a = self.anchors
@@ -506,7 +511,7 @@ class Trainer(TrainingRun):
         n = max(1, math.ceil(self.cfg.leaf_sample * L)) if L else 0
         if n == 0:
             return feats, offs, zero
-        sel = torch.from_numpy(self.rng.choice(L, n, replace=False)).long()
+        sel = torch.from_numpy(self.rng.choice(L, n, replace=False)).long().to(self.device)
         if not with_recon:
             return feats, offs, zero
         pred_s, pred_so = self.predictor.predict(a.positions, a.features, self.nearest, self.leaves[sel],
@@ -538,7 +543,7 @@ class Trainer(TrainingRun):
 
     def _setup_proxies(self, mask: np.ndarray) -> None:
         a = self.anchors
-        self.proxy_mask = torch.from_numpy(np.asarray(mask, dtype=bool))
+        self.proxy_mask = torch.from_numpy(np.asarray(mask, dtype=bool)).to(self.device)
         ctx = self.cfg.predictor_context if self.cfg.predictor == "residual" else 1
         if self.predictor is None:
             self.predictor = predictor_from_json(self._predictor_config().to_json())
@@ -546,8 +551,9 @@ class Trainer(TrainingRun):
             # a predictor from a file written before the rule (distillation's start): it trains on from here, so it
             # takes the rule under which the trainer's anchor order and the container's give the same neighbours
             self.predictor.config = replace(self.predictor.config, ties="position")
-        self.nearest = torch.from_numpy(nearest_proxies(a.positions, mask, ctx, "position")).long()  # [M, ctx]
+        self.nearest = torch.from_numpy(nearest_proxies(a.positions, mask, ctx, "position")).long().to(self.device)
         self.leaves = (~self.proxy_mask).nonzero().squeeze(1)
+        self.predictor.to(self.device)
         for k, p in self.predictor.named_parameters():
             self.opt.add(f"predictor.{k}", p)
         self.stage = 2
@@ -558,10 +564,10 @@ class Trainer(TrainingRun):
         if self.cfg.lambda_rate <= 0:
             return
         a = self.anchors
-        self.rate = RateModel(a.positions.numpy(), a.voxel_size, mask, a.features.detach(), a.offsets.detach(),
-                              a.scalings.detach(), cells=self.cfg.quant_cells)
+        self.rate = RateModel(a.positions.cpu().numpy(), a.voxel_size, mask, a.features.detach(), a.offsets.detach(),
+                              a.scalings.detach(), cells=self.cfg.quant_cells).to(self.device)
         if state is not None:
-            self.rate.load_state_dict({k: torch.from_numpy(np.array(v)) for k, v in state.items()})
+            self.rate.load_state_dict({k: torch.from_numpy(np.array(v)).to(self.device) for k, v in state.items()})
         for k, p in self.rate.named_parameters():
             self.opt.add(f"rate.{k}", p)
 
@@ -582,12 +588,13 @@ class Trainer(TrainingRun):
             self.predictor = predictor_from_json(predictor.config.to_json(), predictor.state_arrays())
         else:
             mask = select_proxies(a.positions, cell, c.proxy_ratio, c.seed, c.proxy_selection)
-        self.leaf_target = a.features.detach()[torch.from_numpy(~mask)].clone()
+        leaf_rows = torch.from_numpy(~mask).to(self.device)
+        self.leaf_target = a.features.detach()[leaf_rows].clone()
         if c.predict_offsets:
-            self.leaf_offset_target = a.offsets.detach()[torch.from_numpy(~mask)].clone()
+            self.leaf_offset_target = a.offsets.detach()[leaf_rows].clone()
         self._setup_proxies(mask)
         if c.predictor_warmup > 0 and self.leaves.numel() and self.start_proxies is None:
-            res = train_predictor(self.predictor, a.positions, a.features.detach(), mask, self.nearest.numpy(),
+            res = train_predictor(self.predictor, a.positions, a.features.detach(), mask, self.nearest.cpu().numpy(),
                                   offsets=a.offsets.detach() if c.predict_offsets else None,
                                   config=TrainConfig(iters=c.predictor_warmup, sample_frac=c.leaf_sample,
                                                      seed=c.seed), recon=c.recon_loss)
@@ -645,7 +652,7 @@ class Trainer(TrainingRun):
         if self.stage >= 2 and self.predictor is not None:
             fit_meta["predictor"] = self.predictor.config.to_json()
             fit_meta["proxy_cell"] = self.proxy_cell_size()
-            arrays["proxy_mask"] = self.proxy_mask.numpy().astype(np.uint8)
+            arrays["proxy_mask"] = self.proxy_mask.cpu().numpy().astype(np.uint8)
             for k, v in self.predictor.state_arrays().items():
                 arrays[f"predictor/{k}"] = v
         return FitResult(model, self.iteration, self.elapsed, self.history, {"fit": fit_meta}, arrays)
@@ -654,25 +661,25 @@ class Trainer(TrainingRun):
     def checkpoint_arrays(self) -> tuple[dict, dict]:
         a = self.anchors
         arrays: dict[str, np.ndarray] = {
-            "anchors/positions": a.positions.numpy().copy(),
-            "anchors/features": a.features.detach().numpy().copy(),
-            "anchors/offsets": a.offsets.detach().numpy().copy(),
-            "anchors/scalings": a.scalings.detach().numpy().copy(),
+            "anchors/positions": a.positions.cpu().numpy().copy(),
+            "anchors/features": a.features.detach().cpu().numpy().copy(),
+            "anchors/offsets": a.offsets.detach().cpu().numpy().copy(),
+            "anchors/scalings": a.scalings.detach().cpu().numpy().copy(),
             **self.strategy.state_arrays(),
             "view_stack": np.asarray(self.view_stack, dtype=np.int64),
         }
         for k, v in self.decoder.state_arrays().items():
             arrays[f"decoder/{k}"] = v
         if self.stage >= 2:
-            arrays["proxy_mask"] = self.proxy_mask.numpy().astype(np.uint8)
-            arrays["leaf_target"] = self.leaf_target.numpy().copy()
+            arrays["proxy_mask"] = self.proxy_mask.cpu().numpy().astype(np.uint8)
+            arrays["leaf_target"] = self.leaf_target.cpu().numpy().copy()
             if self.cfg.predict_offsets:
-                arrays["leaf_offset_target"] = self.leaf_offset_target.numpy().copy()
+                arrays["leaf_offset_target"] = self.leaf_offset_target.cpu().numpy().copy()
             for k, v in self.predictor.state_arrays().items():
                 arrays[f"predictor/{k}"] = v
             if self.rate is not None:
                 for k, v in self.rate.state_dict().items():
-                    arrays[f"rate/{k}"] = v.detach().numpy().copy()
+                    arrays[f"rate/{k}"] = v.detach().cpu().numpy().copy()
         arrays.update(self.opt.state_arrays())
         meta = {
             "kind": CHECKPOINT_KIND, "version": CHECKPOINT_VERSION, "config": self.cfg.to_json(),
@@ -680,7 +687,7 @@ class Trainer(TrainingRun):
             "stage": self.stage, "last_adjust": self.strategy.last_adjust, "voxel_size": a.voxel_size,
             "decoder": self.decoder.config.to_json(),
             "rng": self.rng.bit_generator.state, "adam_steps": dict(self.opt.step_count),
-            "ema_loss": self.ema_loss, "ema_psnr": self.ema_psnr, "history": self.history[-200:],
+            "ema_loss": _float_or_none(self.ema_loss), "ema_psnr": _float_or_none(self.ema_psnr), "history": self.history[-200:],
         }
         return meta, arrays
 
@@ -703,12 +710,12 @@ class Trainer(TrainingRun):
                 raise ProxycodecError(f"checkpoint was made with different settings ({', '.join(diff[:5])}); "
                                       "resume with the same options or start afresh", path)
             arr = ck.arrays
-            self.anchors = TrainableAnchors(*(torch.from_numpy(np.array(arr[f"anchors/{k}"]))
+            self.anchors = TrainableAnchors(*(torch.from_numpy(np.array(arr[f"anchors/{k}"])).to(self.device)
                                               for k in ("positions", "features", "offsets", "scalings")),
                                             float(m["voxel_size"]))
             dcfg = DecoderConfig.from_json(m["decoder"])
             self.decoder = GaussianDecoder.from_arrays(
-                dcfg, {k[len("decoder/"):]: v for k, v in arr.items() if k.startswith("decoder/")})
+                dcfg, {k[len("decoder/"):]: v for k, v in arr.items() if k.startswith("decoder/")}).to(self.device)
             self.opt = self._optimiser()
             self.stage = int(m["stage"])
             self.predictor = None
@@ -716,9 +723,9 @@ class Trainer(TrainingRun):
                 self.predictor = predictor_from_json(
                     self._predictor_config().to_json() if "predictor" not in m else m["predictor"],
                     {k[len("predictor/"):]: v for k, v in arr.items() if k.startswith("predictor/")})
-                self.leaf_target = torch.from_numpy(np.array(arr["leaf_target"]))
+                self.leaf_target = torch.from_numpy(np.array(arr["leaf_target"])).to(self.device)
                 if self.cfg.predict_offsets:
-                    self.leaf_offset_target = torch.from_numpy(np.array(arr["leaf_offset_target"]))
+                    self.leaf_offset_target = torch.from_numpy(np.array(arr["leaf_offset_target"])).to(self.device)
                 self._setup_proxies(np.asarray(arr["proxy_mask"], dtype=bool))
                 self.predictor.train()
                 self._setup_rate(np.asarray(arr["proxy_mask"], dtype=bool),
@@ -734,6 +741,10 @@ class Trainer(TrainingRun):
             self.history = list(m.get("history", []))
         except KeyError as e:
             raise ProxycodecError(f"checkpoint is missing {e}", path) from None
+
+
+def _float_or_none(x) -> float | None:
+    return None if x is None else float(x)
 
 
 # ================================================================================================ saving
@@ -761,7 +772,7 @@ def save_fitted(result: FitResult, ply_path: str | os.PathLike) -> tuple[Path, P
 def fit(data, out_ply: str | os.PathLike, config: FitConfig = FitConfig(), *, dataset_root: str = "",
         resume: bool = False, log: ProgressFn | None = None, keep_checkpoint: bool = False,
         stop_after: int | None = None, start: SceneModel | None = None,
-        to_save: Callable[[FitResult], FitResult] | None = None) -> FitResult:
+        to_save: Callable[[FitResult], FitResult] | None = None, device=None) -> FitResult:
     """Train on ``data`` (a ``PosedImages``) and write ``out_ply`` (+ weights sidecar) atomically.
 
     ``start``: the scene to start from (``Trainer``'s; ``convert`` starts from anchors made of a 3DGS PLY's
@@ -770,12 +781,13 @@ def fit(data, out_ply: str | os.PathLike, config: FitConfig = FitConfig(), *, da
     Checkpoints go to ``<out>.ckpt.pxc`` every ``config.checkpoint_every`` seconds and on interrupt/exception, and
     are removed after success unless ``keep_checkpoint``. ``resume`` continues from that checkpoint. ``to_save``:
     what is written instead of the result (``convert`` writes its canonical-frame result back in world units).
+    ``device``: where it trains (None: the CPU; ``devices.resolve`` gives the command line's choice).
     ``stop_after`` (tests) raises ``KeyboardInterrupt`` after that many iterations of this call.
     """
     log = log or (lambda s: print(s, file=sys.stderr, flush=True))
     ckpt = checkpoint_path_for(out_ply)
     t_setup = time.perf_counter()
-    tr = Trainer(data, config, dataset_root, log, start=start)
+    tr = Trainer(data, config, dataset_root, log, start=start, device=device)
     if resume:
         if not ckpt.exists():
             raise ProxycodecError("no checkpoint to resume from", ckpt)

@@ -20,6 +20,26 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO_ROOT.parent / "shared" / "data"
 
 
+def pytest_configure(config) -> None:
+    config.addinivalue_line(
+        "markers", "cuda: needs a CUDA GPU and gsplat (the cuda backend); skipped with the reason "
+                   "proxycodec.devices.cuda_unavailable_reason() gives where they are missing")
+
+
+def pytest_collection_modifyitems(config, items) -> None:
+    """Skip ``cuda``-marked tests where CUDA work cannot run (torch is imported only when such a test exists)."""
+    marked = [item for item in items if item.get_closest_marker("cuda") is not None]
+    if not marked:
+        return
+    from proxycodec.devices import cuda_unavailable_reason
+
+    why = cuda_unavailable_reason()
+    if why is not None:
+        skip = pytest.mark.skip(reason=f"needs CUDA: {why}")
+        for item in marked:
+            item.add_marker(skip)
+
+
 def shared_data_path(*parts: str) -> Path:
     """``../shared/data/<parts>``, or skip the calling test when it is absent."""
     if not SHARED_DATA.is_dir():

@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from ..devices import resolve
 from ..errors import ProxycodecError
 from .node_tools import SPLAT_TRANSFORM as SPZ_TOOL
 
@@ -89,7 +90,7 @@ def _step_encode(a: dict) -> dict:
     from .. import codec
 
     t0 = time.perf_counter()
-    r = codec.encode(a["source"], a["out"], **a["knobs"])
+    r = codec.encode(a["source"], a["out"], **a["knobs"], device=resolve())
     total = time.perf_counter() - t0
     return {"bytes": r.file_bytes, "seconds": r.seconds["total"], "seconds_call": total,
             "predictor_seconds": r.seconds.get("predictor"), "anchors": r.anchors, "proxies": r.proxies,
@@ -106,6 +107,7 @@ def _step_eval(a: dict) -> dict:
 
     t0 = time.perf_counter()
     model = load_any(a["model"])
+    model = model.to(resolve()) if hasattr(model, "to") else model
     load_s = time.perf_counter() - t0
     out: dict[str, Any] = {"load_seconds": load_s, "rss_after_load_mb": _rss_mb()}
     out["gate"] = apply_gate_mode(model, a.get("gate", "model"))
@@ -175,7 +177,7 @@ def _step_convert(a: dict) -> dict:
     cfg = convert_config(a["convert"])
     log = lambda s: print(s, file=sys.stderr, flush=True)  # noqa: E731
     t0 = time.perf_counter()
-    conv, rep = convert_and_encode(a["ply"], a["out"], cfg, keep=a.get("keep"), log=log)
+    conv, rep = convert_and_encode(a["ply"], a["out"], cfg, keep=a.get("keep"), log=log, device=resolve())
     return {"bytes": rep.file_bytes, "seconds": time.perf_counter() - t0, "convert": conv.to_json(),
             "encode_seconds": rep.seconds["total"], "anchors": rep.anchors, "proxies": rep.proxies}
 

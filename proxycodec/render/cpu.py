@@ -123,15 +123,14 @@ def rasterize_cpu(
     """
     dev = means2d.device
     dt = torch.float64 if means2d.dtype == torch.float64 else torch.float32
-    cpu = torch.device("cpu")
 
-    def prep(x):
-        return x.to(device=cpu, dtype=dt).contiguous()
+    def prep(x):  # the kernels' explicit transfer: a no-op for CPU tensors
+        return x.cpu().to(dtype=dt).contiguous()
 
     if colors.dim() != 2 or means2d.shape != (colors.shape[0], 2):
         raise ValueError(f"rasterize_cpu: means2d {tuple(means2d.shape)} / colors {tuple(colors.shape)} mismatch")
     background = torch.as_tensor(background, device=means2d.device)
     img, alpha = _RasterizeCPU.apply(prep(means2d), prep(conics), prep(opacities), prep(colors),
-                                     depths.detach().to(cpu), extent.detach().to(cpu), int(width), int(height),
+                                     depths.detach().cpu(), extent.detach().cpu(), int(width), int(height),
                                      prep(background))
     return img.to(dev), alpha.to(dev)
