@@ -565,7 +565,8 @@ def convert(ply_path: str | os.PathLike, out_ply: str | os.PathLike, config: Con
     t_init = time.perf_counter() - t0
     fit_cfg = config.fit.with_lr_scale(config.lr_scale)
     if config.anchor_budget() is not None:  # growing keeps within the budget too
-        fit_cfg = replace(fit_cfg, max_anchors=min(fit_cfg.max_anchors, config.anchor_budget()))
+        cap = config.anchor_budget() if fit_cfg.max_anchors is None else min(fit_cfg.max_anchors, config.anchor_budget())
+        fit_cfg = replace(fit_cfg, max_anchors=cap)
     res = fit(views, out_ply, fit_cfg, dataset_root=str(ply_path), resume=resume,
               log=log, start=start, stop_after=stop_after, to_save=frame.result_out, device=device)
     t_fit = time.perf_counter() - t0 - t_init

@@ -101,7 +101,7 @@ class ScaffoldStrategy:
         grads[~torch.isfinite(grads)] = 0.0
         offset_mask = self.offset_denom > interval * c.success_threshold * 0.5
         n_before = anchors.num_anchors
-        if n_before < c.max_anchors:
+        if c.max_anchors is None or n_before < c.max_anchors:
             self._grow(anchors, opt, rng, grads, offset_mask)
         n_new = anchors.num_anchors - n_before
         # Reset the gradient statistics of the offsets that were judged; new anchors start at zero.
@@ -164,7 +164,7 @@ class ScaffoldStrategy:
                 continue
             new_pos = uniq[new_mask].double() * size
             n = int(new_pos.shape[0])
-            if a.num_anchors + n > c.max_anchors:
+            if c.max_anchors is not None and a.num_anchors + n > c.max_anchors:
                 n = max(0, c.max_anchors - a.num_anchors)
                 if n == 0:
                     return

@@ -143,7 +143,7 @@ class FitConfig:
     update_depth: int = 3
     update_init_factor: int = 16
     update_hierarchy_factor: int = 4
-    max_anchors: int = 200_000  # growth stops beyond this (a memory/time guard for CPU runs)
+    max_anchors: int | None = None  # growth stops at this many anchors (None: no cap, as Scaffold-GS; fit --max-anchors)
     # stage 2
     stage2_start: float = 0.5  # also ends anchor growing unless update_until is given
     recon_switch: float = 2.0 / 3.0  # the paper's 20k of 30k
@@ -218,6 +218,8 @@ class FitConfig:
                                   f"{self.lr_constant_final}")
         if not (0.0 <= self.lr_warmup < 1.0):
             raise ProxycodecError(f"learning-rate warm-up must be a fraction of the run in [0, 1), got {self.lr_warmup}")
+        if self.max_anchors is not None and self.max_anchors < 1:
+            raise ProxycodecError(f"the anchor cap must be >= 1, got {self.max_anchors}")
         if self.predictor_warmup < 0:
             raise ProxycodecError(f"predictor warm-up must be >= 0 iterations, got {self.predictor_warmup}")
         if self.recon_loss not in RECON_LOSSES:
@@ -703,7 +705,7 @@ class Trainer(TrainingRun):
         try:
             saved = FitConfig.from_json(m["config"])
             # Run length may change on resume; everything else must match.
-            ignore = {"iters", "time_budget", "checkpoint_every", "log_every", "backend"}
+            ignore = {"iters", "time_budget", "checkpoint_every", "log_every", "backend", "max_anchors"}
             diff = [f.name for f in fields(FitConfig) if f.name not in ignore
                     and getattr(saved, f.name) != getattr(self.cfg, f.name)]
             if diff:

@@ -186,6 +186,17 @@ def test_convert_writes_a_stage_2_anchor_scene_and_reports_on_held_out_views(tmp
     json.dumps(r.to_json())  # JSON-able
 
 
+def test_an_anchor_budget_also_caps_the_training_s_growth(tmp_path):
+    src = tmp_path / "splats.ply"
+    write_inria_ply(src, _ball(300))
+    # 266 anchors from the voxel rule (the coarsest voxel already has them), growth beyond them capped at 275
+    cfg = replace(_tiny_config(iters=12, update_interval=3, grad_threshold=1e-9, min_opacity=0.0), max_anchors=275)
+    r = convert(src, tmp_path / "scene.ply", cfg, log=lambda s: None)
+    assert r.voxel.anchors == 266 and 266 < r.model.scene.num_anchors <= 275
+    free = convert(src, tmp_path / "free.ply", replace(cfg, max_anchors=None), log=lambda s: None)
+    assert free.voxel.anchors == 266 and free.model.scene.num_anchors > 275  # growth without a cap
+
+
 def test_convert_is_deterministic(tmp_path):
     src = tmp_path / "splats.ply"
     write_inria_ply(src, _ball(200))

@@ -471,6 +471,25 @@ class TestFit:
         assert tr.strategy.offset_denom.shape[0] == tr.anchors.num_anchors * K
         assert tr.opt.m["features"].shape == tr.anchors.features.shape
 
+    def test_growing_stops_at_the_anchor_cap_and_has_none_by_default(self, data):
+        from proxycodec.errors import ProxycodecError
+        from proxycodec.train import FitConfig, Trainer
+
+        assert FitConfig().max_anchors is None  # the scene decides (Scaffold-GS has no cap)
+        free = Trainer(data, small_config(iters=100, proxies=False, grad_threshold=1e-6), "tiny")
+        n0 = free.anchors.num_anchors
+        for _ in range(40):
+            free.train_step()
+        grown = free.anchors.num_anchors - n0
+        assert grown > 10
+        capped = Trainer(data, small_config(iters=100, proxies=False, grad_threshold=1e-6, min_opacity=0.0,
+                                            max_anchors=n0 + 3), "tiny")
+        for _ in range(40):
+            capped.train_step()
+        assert n0 < capped.anchors.num_anchors <= n0 + 3
+        with pytest.raises(ProxycodecError, match="anchor cap"):
+            FitConfig(max_anchors=0)
+
 
 # ------------------------------------------------------------------------------------------------ CLI
 def test_cli_fit_and_eval(tiny_dataset, tmp_path):
