@@ -181,15 +181,17 @@ class TeacherViews:
         cam = self.cameras[i]
         if self.device.type != CPU:  # on the device: rendered, cached and resized there (``loop.resize_torch``)
             src = full(i) if size == (cam.width, cam.height) else self.render_tensor(i, size)
-            return resize_torch(src.float(), w, h)
+            return resize_torch(torch.as_tensor(src, device=self.device).float(), w, h)
         src = full(i) if size == (cam.width, cam.height) else self.render(i, size)
         return torch.from_numpy(resize_image(src, w, h) if (w, h) != src.shape[1::-1] else src.copy())
 
-    def _full_render(self, i: int) -> np.ndarray:
+    def _full_render(self, i: int) -> np.ndarray | torch.Tensor:
+        """View ``i``'s 100% render: numpy on the CPU, a tensor where a device teacher renders."""
         src = self._full.get(i)
         if src is None:
             cam = self.cameras[i]
-            src = self.render(i, (cam.width, cam.height))
+            size = (cam.width, cam.height)
+            src = self.render(i, size) if self.device.type == CPU else self.render_tensor(i, size)
             if i in self.test_indices:  # the report reads them at every resolution; training views are cached
                 self._full[i] = src      # by the trainer's targets (``targets``), not twice
         return src

@@ -103,9 +103,11 @@ class TargetImages:
         if a is not None:
             self.items.move_to_end(i)
             return a
-        a = self.data.load_image(i, 1.0).numpy().astype(np.float16)
+        img = self.data.load_image(i, 1.0)  # a photo (host), or a teacher's render (where the teacher renders)
         if self.device.type != CPU:
-            a = torch.from_numpy(a).to(self.device)
+            a = torch.as_tensor(img).to(device=self.device, dtype=torch.float16)
+        else:
+            a = img.numpy().astype(np.float16)
         if a.nbytes <= self.max_bytes:
             self.items[i] = a
             self.nbytes += a.nbytes

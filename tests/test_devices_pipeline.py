@@ -54,6 +54,48 @@ def test_targets_on_the_cpu_are_the_pil_path(data):
         assert torch.equal(a.get(1, xi), b.get(1, xi))
 
 
+@pytest.fixture
+def device_branches(monkeypatch):
+    """The code a CUDA run takes (targets cached and resized as tensors, teacher renders kept as tensors), run here
+    on CPU tensors: the modules' test of "not the CPU" made to answer yes."""
+    import proxycodec.distill
+    import proxycodec.loop
+
+    monkeypatch.setattr(proxycodec.loop, "CPU", "no such device")
+    monkeypatch.setattr(proxycodec.distill, "CPU", "no such device")
+
+
+def test_the_device_branch_of_the_targets_gives_the_cpu_s_targets(data, device_branches):
+    t = TargetImages(data, 1 << 30, "cpu")
+    ref = t.reference(1)
+    assert isinstance(ref, torch.Tensor) and ref.dtype == torch.float16  # cached as a tensor, not numpy
+    for xi in (0.3, 0.77, 1.0):
+        want = torch.from_numpy(resize_image(data.load_image(1, 1.0).numpy().astype(np.float16).astype(np.float32),
+                                             *data.image_size(1, xi)))
+        assert (t.get(1, xi) - want).abs().max() < 2e-6
+
+
+@pytest.mark.parametrize("rule", ["full", "whole"])
+def test_the_device_branch_of_a_teacher_s_targets_and_a_distillation(device_branches, rule):
+    from proxycodec.camera import orbit_cameras
+    from proxycodec.distill import TeacherViews, distill
+    from proxycodec.model import SceneModel
+    from proxycodec.train import FitConfig
+
+    m = tiny_model(150, 3)
+    m = SceneModel(m.scene, m.decoder, orbit_cameras((0.0, 0.0, 0.1), 1.5, 10, width=32, height=24), m.background)
+    views = TeacherViews(m, m.cameras, targets=rule)
+    want = views.render(2, views.source_size(2, 13, 10))
+    got = views.targets(1 << 30).get(2, 13 / 32)
+    assert isinstance(got, torch.Tensor) and got.shape == (10, 13, 3)
+    ref = torch.from_numpy(resize_image(want, 13, 10) if want.shape[:2] != (10, 13) else want)
+    assert (got - ref).abs().max() < 2e-3  # the 100% render cached in float16 ("full"), or rendered at its size
+    assert isinstance(views.load_image(2, 0.5), torch.Tensor)
+    cfg = FitConfig(iters=4, predictor_hidden=16, predictor_blocks=1, predictor_warmup=2, log_every=1e9, seed=0)
+    res = distill(m, cfg, views=views, log=lambda s: None)
+    assert res.iterations == 4 and torch.isfinite(res.model.scene.features).all()
+
+
 # ------------------------------------------------------------------------------------------------ the pipeline
 @pytest.mark.parametrize("device", DEVICES)
 def test_a_fit_runs_on_the_device(data, tmp_path, device):

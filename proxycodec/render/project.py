@@ -132,8 +132,11 @@ def project_gaussians(
     W, H = camera.width, camera.height
     fx, fy, cx, cy = camera.fx, camera.fy, camera.cx, camera.cy
     R = torch.as_tensor(camera.rotation, dtype=dt, device=dev)
-    shift = camera.center - (np.zeros(3) if origin is None else torch.as_tensor(origin).detach().double().cpu().numpy())
-    shift_t = torch.as_tensor(shift, dtype=dt, device=dev)
+    # c - origin in float64 where the means lie (no read-back of a device origin), then in the means' precision
+    shift64 = torch.as_tensor(np.asarray(camera.center, dtype=np.float64), device=dev)
+    if origin is not None:
+        shift64 = shift64 - torch.as_tensor(origin).detach().to(device=dev, dtype=torch.float64)
+    shift_t = shift64.to(dt)
 
     # Cheap culls first, on centres only: depth, then opacity (gate <= 1, so alpha < 1/255 can never show).
     # Small 3x3 products are written out elementwise: torch's batched matmul is slow for them on CPU.
