@@ -30,6 +30,10 @@ each step finishes, a re-run resumes):
 Wall time on the 2-core machine: the steps of the last full run took 11,024 s (fits 9,896 s; the ablations, fits and evaluations, 4,726 s of
 them), before the RD sweep added 4,500 s of fits: ~4.5 h from scratch, more than a 3-hour run can hold.
 ``--no-ablations`` or ``--scenes lego`` shorten it; a re-run without ``--fresh`` resumes from the finished steps.
+Steps are cached by code and configuration: a step is reused when the same package sources (``runner.code_key``) ran
+it with the same arguments, so a map resumed after the code changed re-runs what the change may affect (all of it);
+to resume one map across such changes, run it from a worktree at a fixed commit (``git worktree add``), or pass
+``--any-code`` to reuse whatever is recorded.
 
 Outputs in ``--out``: ``results.json`` (machine, versions, seed, load averages, every step and point), ``tradeoff.md``
 (tables), ``psnr_vs_bytes.png`` (Pareto front marked, default highlighted), ``psnr_vs_time.png``,
@@ -129,6 +133,8 @@ def main(argv=None) -> int:
                     f"{ABLATION['iters']}; quick: {QUICK_ABLATION['iters']}]")
     ap.add_argument("--no-spz", action="store_true", help="skip the SPZ conversion (recorded as skipped)")
     ap.add_argument("--fresh", action="store_true", help="ignore the results of an earlier run in --out")
+    ap.add_argument("--any-code", action="store_true",
+                    help="reuse steps recorded by other code too (default: only the same package sources)")
     ap.add_argument("--ray", nargs="?", const="local", default=None, metavar="ADDRESS",
                     help="run the independent steps as Ray tasks, in waves (same step cache): a local Ray started "
                          "here, or ADDRESS (auto, ray://host:port)")
@@ -192,7 +198,7 @@ def main(argv=None) -> int:
         except ImportError:
             ap.error("--ray needs Ray: pip install -e \".[ray]\"")
         meta["ray"] = ray.info
-    runner = Runner(out, meta, fresh=args.fresh, ray=ray)
+    runner = Runner(out, meta, fresh=args.fresh, ray=ray, any_code=args.any_code)
     runner.log(f"trade-off benchmark -> {out}: scenes {names}, ~{est / 60:.0f} min of training planned "
                f"(plus encodes and evaluations)" + (f"; on Ray: {ray.info}" if ray else ""))
     t0 = time.time()

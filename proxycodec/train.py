@@ -566,8 +566,9 @@ class Trainer(TrainingRun):
         if self.cfg.lambda_rate <= 0:
             return
         a = self.anchors
-        self.rate = RateModel(a.positions.cpu().numpy(), a.voxel_size, mask, a.features.detach(), a.offsets.detach(),
-                              a.scalings.detach(), cells=self.cfg.quant_cells).to(self.device)
+        self.rate = RateModel(a.positions.cpu().numpy(), a.voxel_size, mask, a.features.detach().cpu(),
+                              a.offsets.detach().cpu(), a.scalings.detach().cpu(),
+                              cells=self.cfg.quant_cells).to(self.device)  # built on the host, moved whole
         if state is not None:
             self.rate.load_state_dict({k: torch.from_numpy(np.array(v)).to(self.device) for k, v in state.items()})
         for k, p in self.rate.named_parameters():

@@ -436,3 +436,34 @@ def test_a_map_run_in_waves_on_ray_records_what_the_runner_records(tiny, tmp_pat
     assert [p["bytes"] for p in points_seq] == [p["bytes"] for p in points_par]
     recs = json.loads((tmp_path / "par" / "results.json").read_text())["steps"].values()
     assert all(r["ray"]["cpus_per_step"] == 1 and "shared_host_with" in r for r in recs)
+
+
+def test_a_step_is_reused_only_when_the_same_code_recorded_it(tmp_path, monkeypatch):
+    """Steps are cached by code (the package's sources) and configuration (the step's arguments): the map resumes
+    across interruptions, and other code runs them again unless asked to reuse them."""
+    from proxycodec.bench import runner as R
+
+    calls = []
+    monkeypatch.setattr(R, "run_worker", lambda kind, args: calls.append(args) or {"value": args["x"]})
+    key = R.code_key()
+    assert len(key) == 16 and key == R.code_key()
+
+    def run(code, **kw):
+        monkeypatch.setattr(R, "code_key", lambda: code)
+        r = R.Runner(tmp_path, {}, isolate=False, log=lambda s: None, **kw)
+        out = [r.step("a", "encode", {"x": 1}), r.step("b", "encode", {"x": 2})]
+        r.finish()
+        return out
+
+    first = run("c1")
+    assert len(calls) == 2 and first[0]["code"] == "c1"
+    run("c1")
+    assert len(calls) == 2  # same code, same arguments: reused
+    run("c2")
+    assert len(calls) == 4  # other code: run again
+    run("c3", any_code=True)
+    assert len(calls) == 4
+    monkeypatch.setattr(R, "code_key", lambda: "c2")
+    r = R.Runner(tmp_path, {}, isolate=False, log=lambda s: None)
+    r.step("a", "encode", {"x": 5})  # other arguments: run again
+    assert len(calls) == 5

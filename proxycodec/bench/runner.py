@@ -4,6 +4,7 @@ Also what a run records about the machine and the software."""
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import platform
@@ -67,14 +68,37 @@ def safe_name(sid: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.=-]+", "_", sid)
 
 
+def code_key() -> str:
+    """What the code that runs a step is: a SHA-1 (16 hex digits) of the package's Python sources (``proxycodec``,
+    with ``formats`` and ``cli``; paths and contents), so that a step recorded by other code is run again, and a
+    change outside the package (a benchmark script, a document) keeps the steps."""
+    import importlib
+
+    h = hashlib.sha1()
+    for name in ("proxycodec", "proxycodec.formats", "proxycodec.cli"):
+        root = Path(importlib.import_module(name).__path__[0])
+        for f in sorted(root.rglob("*.py")):
+            if "__pycache__" in f.parts:
+                continue
+            rel = f.relative_to(root)
+            if name == "proxycodec" and rel.parts[0] in ("formats", "cli", "tests", "benchmarks"):
+                continue  # installed copies keep formats/ and cli/ inside: hashed under their own names
+            h.update(f"{name}/{rel.as_posix()}\0".encode())
+            h.update(f.read_bytes())
+    return h.hexdigest()[:16]
+
+
 class Runner:
     """Runs steps (each in a fresh subprocess unless ``isolate`` is False) and records them in ``results.json``.
 
-    A step already recorded as done with the same arguments, whose ``outputs`` still exist, is not run again.
+    A step already recorded as done with the same arguments by the same code (``code_key``), whose ``outputs`` still
+    exist, is not run again; ``any_code`` reuses what other code recorded too.
     """
 
     def __init__(self, out_dir: str | os.PathLike, meta: dict, *, isolate: bool = True, fresh: bool = False,
-                 log: Callable[[str], None] | None = None, ray: "RaySteps | None" = None):
+                 log: Callable[[str], None] | None = None, ray: "RaySteps | None" = None, any_code: bool = False):
+        self.code = code_key()
+        self.any_code = bool(any_code)
         self.out = Path(out_dir)
         self.out.mkdir(parents=True, exist_ok=True)
         self.work = self.out / "work"
@@ -102,7 +126,7 @@ class Runner:
         self.state["meta"] = meta
         self.t0 = time.time()
         self.state["runs"].append({"started": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-                                   "loadavg_start": load_avg(), "isolate": isolate})
+                                   "loadavg_start": load_avg(), "isolate": isolate, "code": self.code})
         self.save()
 
     def save(self, extra: dict | None = None) -> None:
@@ -117,7 +141,7 @@ class Runner:
         args = json.loads(json.dumps(args, default=_json_default))
         rec = self.state["steps"].get(sid)
         if (rec and rec.get("kind") == kind and rec.get("args") == args and rec.get("status") in ("ok", "skipped")
-                and all(Path(o).exists() for o in outputs)):
+                and (self.any_code or rec.get("code") == self.code) and all(Path(o).exists() for o in outputs)):
             return rec
         if self.collecting:
             if sid in self.attempted:  # ran (and failed) in an earlier wave of this run: as the runner reports it
@@ -133,7 +157,7 @@ class Runner:
                 rec = {"status": "ok", "result": run_worker(kind, args), "rss_scope": "shared process"}
             except Exception as e:  # noqa: BLE001 - as a failed subprocess would: record it, go on
                 rec = {"status": "error", "error": f"{type(e).__name__}: {e}"}
-        rec.update(kind=kind, args=args, seconds=time.perf_counter() - t0,
+        rec.update(kind=kind, args=args, seconds=time.perf_counter() - t0, code=self.code,
                    finished=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()))
         if rec["status"] == "ok" and "skipped" in rec.get("result", {}):
             rec["status"] = "skipped"
@@ -184,6 +208,7 @@ class Runner:
                 raise RuntimeError("steps wait for files no step makes: " + ", ".join(sorted(self.pending)))
             for sid, rec in self.ray.run(self, ready).items():
                 self.attempted.add(sid)
+                rec["code"] = self.code
                 self.state["steps"][sid] = rec
                 self.log(f"[{time.strftime('%H:%M:%S')}] {sid}: {rec['status']} in {rec['seconds']:.1f} s on "
                          f"{rec.get('host')} {rec.get('error') or ''}".rstrip())
