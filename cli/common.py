@@ -38,14 +38,11 @@ def user_errors(fn):
 def set_device(name: str) -> None:
     """The group's ``--device``: recorded for the commands (and child processes) in ``$PROXYCODEC_DEVICE``; an
     explicit ``cuda`` is checked at once, so a machine without a GPU gets one line and exit 2 whatever the command."""
-    from ..devices import CHOICES, CUDA, ENV, resolve
+    from ..devices import CUDA, ENV, name_from_env, resolve
 
-    name = name.strip().lower()
+    os.environ[ENV] = name
     try:
-        if name not in CHOICES:
-            raise ProxycodecError(f"--device (or ${ENV}) must be one of {', '.join(CHOICES)}, got {name!r}")
-        os.environ[ENV] = name
-        if name == CUDA:
+        if name_from_env() == CUDA:  # the name checked there, as any child process reads it
             resolve(CUDA)
     except ProxycodecError as e:
         click.echo(f"error: {e}", err=True)

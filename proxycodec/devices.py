@@ -72,10 +72,6 @@ def as_device(device: torch.device | str | None) -> torch.device:
     return torch.device(CPU) if device is None else torch.device(device)
 
 
-def is_cuda(device: torch.device | str | None) -> bool:
-    return device is not None and as_device(device).type == CUDA
-
-
 def module_device(module) -> torch.device:
     """Where a torch module's parameters lie (the CPU for a module without any)."""
     import torch
@@ -85,7 +81,7 @@ def module_device(module) -> torch.device:
 
 def synchronize(device: torch.device | str | None) -> None:
     """Wait for the device's queued work (timings of CUDA work); nothing on the CPU."""
-    if is_cuda(device):
+    if device is not None and as_device(device).type == CUDA:
         import torch
 
         torch.cuda.synchronize(as_device(device))
@@ -98,13 +94,3 @@ def generator(device: torch.device | str | None, seed: int) -> torch.Generator:
     d = as_device(device)
     g = torch.Generator(device=d) if d.type != CPU else torch.Generator()
     return g.manual_seed(int(seed))
-
-
-def describe(device: torch.device | str | None) -> str:
-    """The device in words, for logs and benchmark JSON (``cuda:0 (NVIDIA H100 80GB HBM3)``)."""
-    d = as_device(device)
-    if d.type == CUDA:
-        import torch
-
-        return f"{d} ({torch.cuda.get_device_name(d)})"
-    return str(d)
