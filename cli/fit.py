@@ -111,13 +111,16 @@ _no_undistort_option = click.option(
                    "only (no weights). Anchor-only options do not apply.")
 @explicit_option("--sh-degree", type=click.IntRange(0, 3), show_default=True,
                  help="With --explicit: spherical-harmonics degree of the Gaussians' colours.")
+@explicit_option("--max-gaussians", type=click.IntRange(min=1), show_default=True,
+                 help="With --explicit: densification stops at this many Gaussians (a CPU memory and time guard; "
+                      "3DGS itself has no cap, and real captures reach 1-6M on a GPU).")
 @user_errors
 def fit(dataset, out, iters, time_budget, max_width, seed, no_gate, embedding, fixed_res, xi_sampling, xi_full_share,
         film_hidden, stats_min_xi, no_proxies, proxy_ratio, proxy_selection, predictor_hidden, predictor_blocks,
         predictor_warmup, predictor_context, predict_offsets, lambda_rate, quant_cells, stage2_start, recon_loss,
         lambda_recon, predictor_kind,
         gate_kappa, gate_eta, voxel_size, max_anchors, init_points, images, test_every, no_undistort, resume, checkpoint_every,
-        keep_checkpoint, backend, explicit, sh_degree) -> None:
+        keep_checkpoint, backend, explicit, sh_degree, max_gaussians) -> None:
     """Train an anchor scene on DATASET's photos (a Blender/NeRF-Synthetic or COLMAP folder, detected by its files).
 
     Writes OUT (an anchor PLY) and OUT.weights.pxc (the MLPs, the cameras, and by default the proxies and their
@@ -134,7 +137,7 @@ def fit(dataset, out, iters, time_budget, max_width, seed, no_gate, embedding, f
         run["init_points"] = init_points
     if explicit:
         _fit_explicit(dataset, out, run, max_width, seed, images, test_every, not no_undistort, resume, backend,
-                      sh_degree)
+                      sh_degree, max_gaussians)
         return
     if lambda_recon.strip().lower() == "paper":
         lambda_recon_fixed = None
@@ -162,7 +165,7 @@ def fit(dataset, out, iters, time_budget, max_width, seed, no_gate, embedding, f
 
 
 def _fit_explicit(dataset, out, run: dict, max_width, seed, images, test_every, undistort, resume, backend,
-                  sh_degree) -> None:
+                  sh_degree, max_gaussians) -> None:
     """``fit --explicit``: the plain 3DGS baseline (``proxycodec.explicit``); ``run``: run length and init points
     where given."""
     from ..errors import ProxycodecError
@@ -170,7 +173,8 @@ def _fit_explicit(dataset, out, run: dict, max_width, seed, images, test_every, 
 
     if resume:
         raise ProxycodecError("--resume is not supported with --explicit (the baseline keeps no checkpoints)")
-    cfg = ExplicitConfig(seed=seed, max_width=max_width, sh_degree=sh_degree, backend=backend, **run)
+    cfg = ExplicitConfig(seed=seed, max_width=max_width, sh_degree=sh_degree, backend=backend,
+                         max_gaussians=max_gaussians, **run)
     data = _load_data(dataset, max_width, images, test_every, undistort)
     tr = run_explicit(data, cfg, lambda s: click.echo(s, err=True), out=out, device=command_device())
     click.echo(f"wrote {out} ({tr.num_gaussians} Gaussians, SH degree {sh_degree}, {tr.iteration} iterations, "

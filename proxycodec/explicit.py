@@ -26,7 +26,7 @@ Deliberately left out: 3DGS's screen-space "big point" pruning (its ``max_radii2
 ``densification_postfix`` before the test, so it never fires in the reference code either: issue #123 there),
 opacity resets by default (``opacity_reset_every`` restores them as a fraction of the run; on short CPU runs each
 reset costs more than it gives), exposure compensation, depth regularisation, anti-aliasing variants, checkpoints.
-``max_gaussians`` caps densification as a CPU memory/time guard.
+``max_gaussians`` (``fit --explicit --max-gaussians``) caps densification as a CPU memory/time guard.
 
 With ``iters`` and no time budget a run is deterministic for a seed (one numpy generator draws the view order and
 the split samples; the CPU kernels are deterministic).

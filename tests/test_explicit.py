@@ -159,6 +159,28 @@ def test_densify_below_threshold_and_cap():
     assert torch.equal(r.params["means"], p["means"][[0, 2, 3]])  # Gaussian 1 (0.5 > 0.1 x 4) is gone
 
 
+def test_cli_max_gaussians_reaches_the_config(tiny_blender, tmp_path, monkeypatch):
+    """``--max-gaussians`` sets the densification cap; left out, ExplicitConfig's guard applies."""
+    from click.testing import CliRunner
+    import proxycodec.explicit as explicit
+    from proxycodec.cli.main import cli
+
+    seen = []
+
+    def fake_run(data, cfg, log, out, device=None):
+        seen.append(cfg.max_gaussians)
+        raise explicit.ProxycodecError("stop here")
+
+    monkeypatch.setattr(explicit, "run_explicit", fake_run)
+    base = ["fit", str(tiny_blender), "--explicit", "-o", str(tmp_path / "e.ply"), "--iters", "2", "--max-width", "20"]
+    for extra in (["--max-gaussians", "1234"], []):
+        r = CliRunner().invoke(cli, base + extra)
+        assert r.exit_code == 2 and "stop here" in r.output, r.output
+    assert seen == [1234, explicit.ExplicitConfig.max_gaussians]
+    r = CliRunner().invoke(cli, base + ["--max-gaussians", "0"])
+    assert r.exit_code == 2 and "--max-gaussians" in r.output
+
+
 # ------------------------------------------------------------------------------------------------ training
 def test_training_reduces_loss_and_densifies(data):
     from proxycodec.explicit import ExplicitTrainer
