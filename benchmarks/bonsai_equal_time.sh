@@ -4,9 +4,9 @@
 # machine, then evaluated on the 37 held-out views at 10%..100%, with the container and the 3DGS PLY's SPZ.
 #   benchmarks/bonsai_equal_time.sh [BUDGET_SECONDS] [OUT_DIR] [STEPS]
 # STEPS: a comma-separated subset of ours,3dgs,scaffold,fixedres,encode,compare [default: all, in that order].
-# Re-runnable: a finished step (its output present) is skipped; an interrupted anchor fit continues with --resume
-# (Ctrl-C writes its checkpoint; a SIGSTOPped step counts its pause, so resume with the budget plus the pause).
-# `fit --explicit` keeps no checkpoint: the 3DGS step must run in one go. One training at a time (never two at once).
+# Re-runnable: a finished step (its output present) is skipped; an interrupted fit (ours or 3DGS) continues with
+# --resume (Ctrl-C writes its checkpoint; a SIGSTOPped step counts its pause, so resume with the budget plus the
+# pause). One training at a time (never two at once).
 set -euo pipefail
 BUDGET=${1:-7200}
 OUT=${2:-/tmp/proxycodec_bonsai_equal_time}
@@ -19,7 +19,7 @@ PC="proxycodec --threads ${THREADS:-2}"
 mkdir -p "$OUT"
 want() { [[ ",$STEPS," == *",$1,"* ]]; }
 
-anchor_fit() {  # name, extra fit options...
+fit() {  # name, extra fit options...
   local name=$1; shift
   if [ ! -f "$OUT/$name.ply" ]; then
     local resume=()
@@ -27,7 +27,7 @@ anchor_fit() {  # name, extra fit options...
     $PC fit "$DATA" --max-width 800 --time-budget "$BUDGET" -o "$OUT/$name.ply" --keep-checkpoint "${resume[@]}" "$@" \
       >> "$OUT/$name.fit.log" 2>&1
   fi
-  evaluate "$name" "$OUT/$name.ply"
+  evaluate "$name" "$OUT/$name.ply" $([[ " $* " == *" --explicit "* ]] && echo --max-width 800)
 }
 evaluate() {  # name, scene, extra eval options...
   local name=$1 scene=$2; shift 2
@@ -40,19 +40,17 @@ print(f"{sys.argv[2]:10s} mean PSNR {s['psnr_avg']:.2f}  10%: {s['psnr_10']:.2f}
 PY
 }
 
-want ours && anchor_fit ours
+want ours && fit ours
 if want 3dgs; then
-  [ -f "$OUT/3dgs.ply" ] || $PC fit "$DATA" --explicit --max-width 800 --time-budget "$BUDGET" -o "$OUT/3dgs.ply" \
-    > "$OUT/3dgs.fit.log" 2>&1
-  evaluate 3dgs "$OUT/3dgs.ply" --max-width 800
+  fit 3dgs --explicit
   [ -f "$OUT/3dgs.spz" ] || python -c "
 import sys
 from proxycodec.formats.inria_ply import read_inria_ply
 from proxycodec.formats.spz import write_spz
 print('3dgs.spz', write_spz(sys.argv[2], read_inria_ply(sys.argv[1])), 'B')" "$OUT/3dgs.ply" "$OUT/3dgs.spz"
 fi
-want scaffold && anchor_fit scaffold --no-proxies --no-gate --embedding none --fixed-res
-want fixedres && anchor_fit fixedres --fixed-res
+want scaffold && fit scaffold --no-proxies --no-gate --embedding none --fixed-res
+want fixedres && fit fixedres --fixed-res
 if want encode; then
   [ -f "$OUT/ours.pxc" ] || $PC encode "$OUT/ours.ply" -o "$OUT/ours.pxc" ${ENCODE_ARGS:-} > "$OUT/encode.log" 2>&1
   evaluate ours_pxc "$OUT/ours.pxc"

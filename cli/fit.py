@@ -29,9 +29,10 @@ _no_undistort_option = click.option(
          "load time (SIMPLE_RADIAL, RADIAL, OPENCV, FULL_OPENCV).")
 
 
-# The options --explicit shares with the anchor fit (--max-width, --seed, --backend) take FitConfig's defaults (a test
-# holds ExplicitConfig's equal). The run length (--iters, --time-budget) and --init-points deliberately have none:
-# left out, each config's own applies (--time-budget alone: no iteration limit).
+# The options --explicit shares with the anchor fit (--max-width, --seed, --backend, --checkpoint-every, --resume,
+# --keep-checkpoint) take FitConfig's defaults (a test holds ExplicitConfig's equal). The run length (--iters,
+# --time-budget) and --init-points deliberately have none: left out, each config's own applies (--time-budget alone:
+# no iteration limit).
 @click.command()
 @click.argument("dataset", type=click.Path(file_okay=False))
 @click.option("-o", "--out", default="scene.ply", show_default=True, type=click.Path(dir_okay=False),
@@ -137,7 +138,7 @@ def fit(dataset, out, iters, time_budget, max_width, seed, no_gate, embedding, f
         run["init_points"] = init_points
     if explicit:
         _fit_explicit(dataset, out, run, max_width, seed, images, test_every, not no_undistort, resume, backend,
-                      sh_degree, max_gaussians)
+                      sh_degree, max_gaussians, checkpoint_every, keep_checkpoint)
         return
     if lambda_recon.strip().lower() == "paper":
         lambda_recon_fixed = None
@@ -165,18 +166,16 @@ def fit(dataset, out, iters, time_budget, max_width, seed, no_gate, embedding, f
 
 
 def _fit_explicit(dataset, out, run: dict, max_width, seed, images, test_every, undistort, resume, backend,
-                  sh_degree, max_gaussians) -> None:
+                  sh_degree, max_gaussians, checkpoint_every, keep_checkpoint) -> None:
     """``fit --explicit``: the plain 3DGS baseline (``proxycodec.explicit``); ``run``: run length and init points
     where given."""
-    from ..errors import ProxycodecError
     from ..explicit import ExplicitConfig, run_explicit
 
-    if resume:
-        raise ProxycodecError("--resume is not supported with --explicit (the baseline keeps no checkpoints)")
     cfg = ExplicitConfig(seed=seed, max_width=max_width, sh_degree=sh_degree, backend=backend,
-                         max_gaussians=max_gaussians, **run)
+                         max_gaussians=max_gaussians, checkpoint_every=checkpoint_every, **run)
     data = _load_data(dataset, max_width, images, test_every, undistort)
-    tr = run_explicit(data, cfg, lambda s: click.echo(s, err=True), out=out, device=command_device())
+    tr = run_explicit(data, cfg, lambda s: click.echo(s, err=True), out=out, device=command_device(), resume=resume,
+                      keep_checkpoint=keep_checkpoint)
     click.echo(f"wrote {out} ({tr.num_gaussians} Gaussians, SH degree {sh_degree}, {tr.iteration} iterations, "
                f"{tr.elapsed:.0f} s, {Path(out).stat().st_size:,} B)")
 

@@ -25,11 +25,13 @@ graphdeco-inria/gaussian-splatting's ``train.py`` / ``GaussianModel``:
 Deliberately left out: 3DGS's screen-space "big point" pruning (its ``max_radii2D`` is zeroed by
 ``densification_postfix`` before the test, so it never fires in the reference code either: issue #123 there),
 opacity resets by default (``opacity_reset_every`` restores them as a fraction of the run; on short CPU runs each
-reset costs more than it gives), exposure compensation, depth regularisation, anti-aliasing variants, checkpoints.
+reset costs more than it gives), exposure compensation, depth regularisation, anti-aliasing variants.
 ``max_gaussians`` (``fit --explicit --max-gaussians``) caps densification as a CPU memory/time guard.
 
 With ``iters`` and no time budget a run is deterministic for a seed (one numpy generator draws the view order and
-the split samples; the CPU kernels are deterministic).
+the split samples; the CPU kernels are deterministic). Checkpoints (``OUT.ckpt.pxc``, our own container: raw arrays
+and JSON) are written every ``checkpoint_every`` seconds and on interrupt or error; ``resume`` continues the same
+random stream, so an interrupted and resumed run writes the same PLY bytes as one run straight through.
 """
 
 from __future__ import annotations
@@ -48,9 +50,10 @@ from .devices import as_device
 from .errors import ProxycodecError
 from .formats.inria_ply import GaussianPly, rgb_to_sh_dc, write_inria_ply
 from .formats.splats import is_inria_ply
+from .formats.container import read_container, write_container
 from .loop import (
-    ProgressFn, TargetImages, TrainingRun, check_run_length, fmt_time, initial_points, knn_scale, ndc_grad_norm,
-    photometric_loss, run_until_done,
+    ProgressFn, TargetImages, TrainingRun, check_run_length, checkpoint_path_for, fmt_time, initial_points, knn_scale,
+    ndc_grad_norm, photometric_loss, run_checkpointed,
 )
 from .optim import Adam, exp_lr
 from .render import GateConfig, RenderResult, render_gaussians
@@ -72,6 +75,13 @@ __all__ = [
 
 #: Plain 3DGS has no pixel coverage gate.
 NO_GATE = GateConfig(enabled=False)
+EXPLICIT_CHECKPOINT_KIND = "proxycodec.explicit-checkpoint"
+EXPLICIT_CHECKPOINT_VERSION = 1
+#: The parameter tensors of a run, in the order they are created (``initial_gaussians``).
+_PARAM_NAMES = ("means", "sh_dc", "sh_rest", "opacities", "scales", "quats")
+#: Settings a resumed run may change: its length and bookkeeping.
+_RESUME_MAY_CHANGE = frozenset({"iters", "time_budget", "checkpoint_every", "log_every", "backend", "image_cache_mb",
+                                "max_gaussians"})
 
 # Real spherical harmonics constants of 3DGS's ``utils/sh_utils.py`` (degree <= 3).
 SH_C0 = 0.28209479177387814
@@ -158,6 +168,7 @@ class ExplicitConfig:
     image_cache_mb: int = 2048
     backend: str = "auto"
     log_every: float = 10.0  # seconds between progress lines
+    checkpoint_every: float = 300.0  # seconds between checkpoints (0: never, except on interrupt)
 
     def __post_init__(self) -> None:
         check_run_length(self.iters, self.time_budget, self.max_width)
@@ -167,6 +178,8 @@ class ExplicitConfig:
             raise ProxycodecError(f"xi_min must be in [0.025, 1], got {self.xi_min}")
         if self.init_points < 1 or self.max_gaussians < 1:
             raise ProxycodecError("init_points and max_gaussians must be >= 1")
+        if not self.checkpoint_every >= 0:
+            raise ProxycodecError(f"checkpoint_every must be >= 0 seconds, got {self.checkpoint_every}")
 
     def to_json(self) -> dict:
         return {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(self).items()}
@@ -407,6 +420,66 @@ class ExplicitTrainer(TrainingRun):
         self.opt.v["opacities"].zero_()
         self.log(f"  opacity reset at iteration {self.iteration}")
 
+    # ------------------------------------------------------------------ checkpoints
+    def checkpoint_arrays(self) -> tuple[dict, dict]:
+        arrays: dict[str, np.ndarray] = {f"gaussians/{k}": v.detach().cpu().numpy().copy()
+                                         for k, v in self.params.items()}
+        arrays["stats/grad_accum"] = self.grad_accum.cpu().numpy().copy()
+        arrays["stats/denom"] = self.denom.cpu().numpy().copy()
+        arrays["view_stack"] = np.asarray(self.view_stack, dtype=np.int64)
+        arrays.update(self.opt.state_arrays())
+        meta = {
+            "kind": EXPLICIT_CHECKPOINT_KIND, "version": EXPLICIT_CHECKPOINT_VERSION, "config": self.cfg.to_json(),
+            "iteration": self.iteration, "elapsed": self.elapsed, "last_densify": self.last_densify,
+            "last_reset": self.last_reset, "rng": self.rng.bit_generator.state, "adam_steps": dict(self.opt.step_count),
+            "ema_loss": None if self.ema_loss is None else float(self.ema_loss),
+            "ema_psnr": None if self.ema_psnr is None else float(self.ema_psnr), "history": self.history[-200:],
+        }
+        return meta, arrays
+
+    def save_checkpoint(self, path: str | os.PathLike) -> None:
+        meta, arrays = self.checkpoint_arrays()
+        write_container(path, meta, arrays, level=3)
+
+    def load_checkpoint(self, path: str | os.PathLike) -> None:
+        """Continue from ``save_checkpoint``'s file; its settings must be this run's but for the run length and
+        bookkeeping (one-line errors naming the file otherwise)."""
+        ck = read_container(path)
+        m = ck.meta
+        if m.get("kind") != EXPLICIT_CHECKPOINT_KIND or m.get("version") != EXPLICIT_CHECKPOINT_VERSION:
+            raise ProxycodecError("not a `fit --explicit` checkpoint of this version", path)
+        try:
+            saved, now = m["config"], self.cfg.to_json()
+            diff = [k for k in now if k not in _RESUME_MAY_CHANGE and saved.get(k) != now[k]]
+            if diff:
+                raise ProxycodecError(f"checkpoint was made with different settings ({', '.join(diff[:5])}); "
+                                      "resume with the same options or start afresh", path)
+            arr = ck.arrays
+            self.opt = Adam()
+            self.params = {}
+            for k in _PARAM_NAMES:
+                t = torch.from_numpy(np.array(arr[f"gaussians/{k}"], dtype=np.float32)).to(self.device)
+                self.params[k] = t.requires_grad_(True)
+                self.opt.add(k, t)
+            self.opt.load_arrays(arr, m["adam_steps"])
+            n = self.num_gaussians
+            for k in ("grad_accum", "denom"):
+                a = np.array(arr[f"stats/{k}"], dtype=np.float64)
+                if a.shape != (n,):
+                    raise ProxycodecError(f"checkpoint's stats/{k} has shape {a.shape}, expected ({n},)", path)
+                setattr(self, k, torch.from_numpy(a).to(self.device))
+            self.view_stack = [int(x) for x in arr["view_stack"]]
+            self.iteration = int(m["iteration"])
+            self.elapsed = float(m["elapsed"])
+            self.last_densify = int(m["last_densify"])
+            self.last_reset = int(m["last_reset"])
+            self.rng = np.random.default_rng()
+            self.rng.bit_generator.state = m["rng"]
+            self.ema_loss, self.ema_psnr = m.get("ema_loss"), m.get("ema_psnr")
+            self.history = list(m.get("history", []))
+        except KeyError as e:
+            raise ProxycodecError(f"checkpoint is missing {e}", path) from None
+
     # ------------------------------------------------------------------ result
     @torch.no_grad()
     def result(self) -> GaussianPly:
@@ -424,20 +497,34 @@ def train_explicit(data, cfg: ExplicitConfig = ExplicitConfig(), log: ProgressFn
 
 
 def run_explicit(data, cfg: ExplicitConfig = ExplicitConfig(), log: ProgressFn | None = print, *,
-                 out: str | os.PathLike | None = None, device=None) -> ExplicitTrainer:
-    """``train_explicit`` returning the finished trainer (iterations, time, history, the Gaussians)."""
+                 out: str | os.PathLike | None = None, device=None, resume: bool = False,
+                 keep_checkpoint: bool = False, stop_after: int | None = None) -> ExplicitTrainer:
+    """``train_explicit`` returning the finished trainer (iterations, time, history, the Gaussians).
+
+    With ``out``, checkpoints go to ``OUT.ckpt.pxc`` every ``cfg.checkpoint_every`` seconds and on interrupt or error
+    (removed after success unless ``keep_checkpoint``), and ``resume`` continues from it. ``stop_after`` (tests)
+    raises ``KeyboardInterrupt`` after that many iterations of this call."""
     log = log or (lambda s: None)
+    if resume and out is None:
+        raise ProxycodecError("resume needs the output path (its checkpoint lies beside it)")
+    ckpt = checkpoint_path_for(out) if out is not None else None
     t_setup = time.perf_counter()
     tr = ExplicitTrainer(data, cfg, log, device)
-    log(f"fit --explicit (plain 3DGS): {len(data.train_indices)} training views, {tr.num_gaussians} initial "
-        f"Gaussians, extent {tr.extent:.3g}, SH degree {cfg.sh_degree}, setup {time.perf_counter() - t_setup:.1f} s; "
-        f"iters {cfg.iters}, time budget {cfg.time_budget}")
-    run_until_done(tr, log, lambda st: f"gauss {tr.num_gaussians:7d}  drawn {st['drawn']:7d}",
-                   lambda: {"gaussians": tr.num_gaussians})
-    ply = tr.result()
-    if out is not None:
-        write_inria_ply(out, ply)
-    log(f"done: {tr.iteration} iterations in {fmt_time(tr.elapsed)}, {ply.n_gaussians} Gaussians"
+    if resume:
+        if not ckpt.exists():
+            raise ProxycodecError("no checkpoint to resume from", ckpt)
+        tr.load_checkpoint(ckpt)
+        log(f"resumed from {ckpt} at iteration {tr.iteration} ({fmt_time(tr.elapsed)} trained, "
+            f"{tr.num_gaussians} Gaussians)")
+    log(f"fit --explicit (plain 3DGS): {len(data.train_indices)} training views, {tr.num_gaussians} "
+        f"{'' if resume else 'initial '}Gaussians, extent {tr.extent:.3g}, SH degree {cfg.sh_degree}, "
+        f"setup {time.perf_counter() - t_setup:.1f} s; iters {cfg.iters}, time budget {cfg.time_budget}")
+    detail = lambda st: f"gauss {tr.num_gaussians:7d}  drawn {st['drawn']:7d}"
+    hist = lambda: {"gaussians": tr.num_gaussians}
+    run_checkpointed(tr, ckpt, cfg.checkpoint_every, log, detail, hist,
+                     (lambda: None) if out is None else (lambda: write_inria_ply(out, tr.result())),
+                     keep_checkpoint=keep_checkpoint, stop_after=stop_after)
+    log(f"done: {tr.iteration} iterations in {fmt_time(tr.elapsed)}, {tr.num_gaussians} Gaussians"
         + (f" -> {out}" if out is not None else ""))
     return tr
 

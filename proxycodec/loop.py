@@ -12,10 +12,13 @@ pruning, densifying). Also here: what both trainers draw their run from (run len
 
 from __future__ import annotations
 
+import contextlib
 import math
+import os
 import time
 from collections import OrderedDict
 from collections.abc import Callable
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -25,8 +28,8 @@ from .errors import ProxycodecError
 from .metrics import dssim
 
 __all__ = [
-    "ProgressFn", "TargetImages", "TrainingRun", "check_run_length", "fmt_time", "initial_points", "knn_scale",
-    "ndc_grad_norm", "photometric_loss", "run_until_done",
+    "ProgressFn", "TargetImages", "TrainingRun", "check_run_length", "checkpoint_path_for", "fmt_time",
+    "initial_points", "knn_scale", "ndc_grad_norm", "photometric_loss", "run_checkpointed", "run_until_done",
 ]
 
 ProgressFn = Callable[[str], None]
@@ -333,3 +336,43 @@ def run_until_done(tr: TrainingRun, log: ProgressFn, detail, hist_extra,
         last_log = now if logged else last_log
         if between_steps is not None:
             between_steps(now)
+
+
+def checkpoint_path_for(out: str | os.PathLike) -> Path:
+    """Where a run writing ``out`` keeps its checkpoint: ``OUT.ckpt.pxc`` beside it."""
+    p = Path(out)
+    return p.with_name(p.stem + ".ckpt.pxc")
+
+
+def run_checkpointed(tr: TrainingRun, ckpt: Path | None, checkpoint_every: float, log: ProgressFn, detail,
+                     hist_extra, finish: Callable[[], None], *, keep_checkpoint: bool = False,
+                     stop_after: int | None = None) -> None:
+    """``run_until_done``, then ``finish()`` (writing the result), with ``tr.save_checkpoint(ckpt)`` every
+    ``checkpoint_every`` seconds (0: never) and on interrupt or error, in training or in ``finish``: the work is
+    kept, never a partial output. After success the checkpoint is removed unless ``keep_checkpoint``. ``ckpt``
+    None: no checkpoints at all. ``stop_after`` (tests) raises ``KeyboardInterrupt`` after that many steps of this
+    call."""
+    last_ckpt = time.perf_counter()
+    steps = 0
+
+    def between_steps(now: float) -> None:
+        nonlocal last_ckpt, steps
+        steps += 1
+        if ckpt is not None and checkpoint_every > 0 and now - last_ckpt >= checkpoint_every and not tr.done():
+            tr.save_checkpoint(ckpt)
+            last_ckpt = time.perf_counter()
+        if stop_after is not None and steps >= stop_after:
+            raise KeyboardInterrupt
+
+    try:
+        run_until_done(tr, log, detail, hist_extra, between_steps)
+        finish()
+    except BaseException:
+        if ckpt is not None:
+            with contextlib.suppress(Exception):
+                tr.save_checkpoint(ckpt)
+                log(f"checkpoint saved at iteration {tr.iteration}: {ckpt} (continue with --resume)")
+        raise
+    if ckpt is not None and not keep_checkpoint:
+        with contextlib.suppress(FileNotFoundError):
+            ckpt.unlink()

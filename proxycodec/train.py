@@ -18,7 +18,6 @@ Checkpoints and outputs are our own containers (raw arrays + JSON), written atom
 
 from __future__ import annotations
 
-import contextlib
 import math
 import os
 import shutil
@@ -40,8 +39,8 @@ from .entropy_fit import RateModel
 from .errors import ProxycodecError
 from .formats.container import read_container, write_container
 from .loop import (
-    ProgressFn, TargetImages, TrainingRun, check_run_length, check_xi_sampling, fmt_time, initial_points, knn_scale,
-    photometric_loss, run_until_done,
+    ProgressFn, TargetImages, TrainingRun, check_run_length, check_xi_sampling, checkpoint_path_for, fmt_time,
+    initial_points, knn_scale, photometric_loss, run_checkpointed,
 )
 from .model import SceneModel, render_scene, weights_path_for
 from .netconfig import PredictorConfig
@@ -348,11 +347,6 @@ class FitResult:
     history: list[dict] = field(default_factory=list)
     extra_meta: dict = field(default_factory=dict)
     extra_arrays: dict = field(default_factory=dict)
-
-
-def checkpoint_path_for(out_ply: str | os.PathLike) -> Path:
-    p = Path(out_ply)
-    return p.with_name(p.stem + ".ckpt.pxc")
 
 
 class Trainer(TrainingRun):
@@ -799,33 +793,17 @@ def fit(data, out_ply: str | os.PathLike, config: FitConfig = FitConfig(), *, da
     log(f"fit: {len(data.train_indices)} training views, {tr.anchors.num_anchors} anchors "
         f"(voxel {tr.anchors.voxel_size:.4g}), setup {time.perf_counter() - t_setup:.1f} s; "
         f"iters {config.iters}, time budget {config.time_budget}")
-    last_ckpt = time.perf_counter()
-    steps = 0
+    saved: list[FitResult] = []
 
-    def between_steps(now: float) -> None:
-        nonlocal last_ckpt, steps
-        steps += 1
-        if config.checkpoint_every > 0 and now - last_ckpt >= config.checkpoint_every and not tr.done():
-            tr.save_checkpoint(ckpt)
-            last_ckpt = time.perf_counter()
-        if stop_after is not None and steps >= stop_after:
-            raise KeyboardInterrupt
-
-    try:
-        run_until_done(tr, log, lambda st: (
-            f"xi {st['xi']:.2f}  gauss {st['gaussians']:7d}  anchors {tr.anchors.num_anchors:6d}  "
-            f"stage {tr.stage}"), lambda: {"anchors": tr.anchors.num_anchors}, between_steps)
+    def finish() -> None:
         res = tr.result()
         save_fitted(to_save(res) if to_save else res, out_ply)
-    except BaseException:
-        # Interrupt or error (while training or saving): keep the work, never a partial output.
-        with contextlib.suppress(Exception):
-            tr.save_checkpoint(ckpt)
-            log(f"checkpoint saved at iteration {tr.iteration}: {ckpt} (continue with --resume)")
-        raise
-    if not keep_checkpoint:
-        with contextlib.suppress(FileNotFoundError):
-            ckpt.unlink()
+        saved.append(res)
+
+    run_checkpointed(tr, ckpt, config.checkpoint_every, log, lambda st: (
+        f"xi {st['xi']:.2f}  gauss {st['gaussians']:7d}  anchors {tr.anchors.num_anchors:6d}  "
+        f"stage {tr.stage}"), lambda: {"anchors": tr.anchors.num_anchors}, finish, keep_checkpoint=keep_checkpoint,
+        stop_after=stop_after)
     log(f"done: {tr.iteration} iterations in {fmt_time(tr.elapsed)}, {tr.anchors.num_anchors} anchors -> "
         f"{out_ply}")
-    return res
+    return saved[0]

@@ -122,7 +122,7 @@ def test_fit_explicit_shares_the_anchor_fit_defaults():
     from proxycodec.explicit import ExplicitConfig
     from proxycodec.train import FitConfig
 
-    for name in ("max_width", "seed", "backend"):
+    for name in ("max_width", "seed", "backend", "checkpoint_every"):
         assert getattr(FitConfig(), name) == getattr(ExplicitConfig(), name), name
 
 

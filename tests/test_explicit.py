@@ -167,7 +167,7 @@ def test_cli_max_gaussians_reaches_the_config(tiny_blender, tmp_path, monkeypatc
 
     seen = []
 
-    def fake_run(data, cfg, log, out, device=None):
+    def fake_run(data, cfg, log, out, **kw):
         seen.append(cfg.max_gaussians)
         raise explicit.ProxycodecError("stop here")
 
@@ -231,6 +231,52 @@ def test_deterministic_for_seed_and_iters(data, tmp_path):
     assert (tmp_path / "a.ply").read_bytes() != (tmp_path / "c.ply").read_bytes()
 
 
+def test_interrupted_and_resumed_writes_the_same_ply(data, tmp_path):
+    """A run interrupted (its checkpoint written) and resumed writes the PLY of the same run straight through, byte
+    for byte: Gaussians, Adam moments, densification statistics, view order and random stream all continue; the
+    checkpoint is removed after success."""
+    from proxycodec.explicit import run_explicit
+    from proxycodec.loop import checkpoint_path_for
+
+    cfg = small_config(iters=36, grad_threshold=1e-5)
+    straight = run_explicit(data, cfg, log=None, out=tmp_path / "a.ply")
+    out = tmp_path / "b.ply"
+    log = []
+    with pytest.raises(KeyboardInterrupt):
+        run_explicit(data, cfg, log=log.append, out=out, stop_after=15)  # after the densification at 10
+    ckpt = checkpoint_path_for(out)
+    assert ckpt.exists() and not out.exists() and any("checkpoint saved at iteration 15" in s for s in log)
+    with pytest.raises(KeyboardInterrupt):  # a second interruption, from the resumed state (past the one at 20)
+        run_explicit(data, cfg, log=None, out=out, resume=True, stop_after=8)
+    resumed = run_explicit(data, cfg, log=log.append, out=out, resume=True)
+    assert any("resumed from" in s and "at iteration 23" in s for s in log)
+    assert resumed.iteration == straight.iteration == 36
+    assert straight.num_gaussians != 200  # densification ran in both parts
+    assert out.read_bytes() == (tmp_path / "a.ply").read_bytes()
+    assert not ckpt.exists()
+
+
+def test_resume_refuses_other_settings_and_missing_checkpoints(data, tmp_path):
+    from proxycodec.errors import ProxycodecError
+    from proxycodec.explicit import run_explicit
+    from proxycodec.loop import checkpoint_path_for
+
+    out = tmp_path / "c.ply"
+    with pytest.raises(ProxycodecError, match="no checkpoint to resume from"):
+        run_explicit(data, small_config(iters=10), log=None, out=out, resume=True)
+    with pytest.raises(KeyboardInterrupt):
+        run_explicit(data, small_config(iters=10), log=None, out=out, stop_after=3)
+    with pytest.raises(ProxycodecError, match=r"c\.ckpt\.pxc.*different settings \(sh_degree\)"):
+        run_explicit(data, small_config(iters=10, sh_degree=2), log=None, out=out, resume=True)
+    # the run length may change: 3 done + 4 more
+    tr = run_explicit(data, small_config(iters=7, max_gaussians=500), log=None, out=out, resume=True,
+                      keep_checkpoint=True)
+    assert tr.iteration == 7 and out.exists() and checkpoint_path_for(out).exists()
+    checkpoint_path_for(out).write_bytes(b"not a container")
+    with pytest.raises(ProxycodecError, match=r"c\.ckpt\.pxc"):
+        run_explicit(data, small_config(iters=10), log=None, out=out, resume=True)
+
+
 def test_random_resolution_option(data):
     from proxycodec.explicit import ExplicitTrainer
 
@@ -269,4 +315,4 @@ def test_cli_fit_explicit_then_eval(tiny_blender, tmp_path):
     assert rep["summary"]["anchors"] is None and rep["summary"]["gaussians_stored"] > 0
     assert "explicit Gaussians" in (tmp_path / "ev" / "eval.md").read_text()
     r = CliRunner().invoke(cli, ["fit", str(tiny_blender), "--explicit", "-o", str(out), "--iters", "2", "--resume"])
-    assert r.exit_code == 2 and "not supported" in r.output
+    assert r.exit_code == 2 and "no checkpoint to resume from" in r.output and "e.ckpt.pxc" in r.output
