@@ -426,15 +426,12 @@ class ExplicitTrainer(TrainingRun):
                                          for k, v in self.params.items()}
         arrays["stats/grad_accum"] = self.grad_accum.cpu().numpy().copy()
         arrays["stats/denom"] = self.denom.cpu().numpy().copy()
-        arrays["view_stack"] = np.asarray(self.view_stack, dtype=np.int64)
         arrays.update(self.opt.state_arrays())
-        meta = {
-            "kind": EXPLICIT_CHECKPOINT_KIND, "version": EXPLICIT_CHECKPOINT_VERSION, "config": self.cfg.to_json(),
-            "iteration": self.iteration, "elapsed": self.elapsed, "last_densify": self.last_densify,
-            "last_reset": self.last_reset, "rng": self.rng.bit_generator.state, "adam_steps": dict(self.opt.step_count),
-            "ema_loss": None if self.ema_loss is None else float(self.ema_loss),
-            "ema_psnr": None if self.ema_psnr is None else float(self.ema_psnr), "history": self.history[-200:],
-        }
+        run_meta, run_arrays = self.run_state()
+        arrays.update(run_arrays)
+        meta = {"kind": EXPLICIT_CHECKPOINT_KIND, "version": EXPLICIT_CHECKPOINT_VERSION, "config": self.cfg.to_json(),
+                "last_densify": self.last_densify, "last_reset": self.last_reset,
+                "adam_steps": dict(self.opt.step_count), **run_meta}
         return meta, arrays
 
     def save_checkpoint(self, path: str | os.PathLike) -> None:
@@ -468,15 +465,9 @@ class ExplicitTrainer(TrainingRun):
                 if a.shape != (n,):
                     raise ProxycodecError(f"checkpoint's stats/{k} has shape {a.shape}, expected ({n},)", path)
                 setattr(self, k, torch.from_numpy(a).to(self.device))
-            self.view_stack = [int(x) for x in arr["view_stack"]]
-            self.iteration = int(m["iteration"])
-            self.elapsed = float(m["elapsed"])
             self.last_densify = int(m["last_densify"])
             self.last_reset = int(m["last_reset"])
-            self.rng = np.random.default_rng()
-            self.rng.bit_generator.state = m["rng"]
-            self.ema_loss, self.ema_psnr = m.get("ema_loss"), m.get("ema_psnr")
-            self.history = list(m.get("history", []))
+            self.load_run_state(m, arr)
         except KeyError as e:
             raise ProxycodecError(f"checkpoint is missing {e}", path) from None
 

@@ -205,6 +205,23 @@ class TrainingRun:
         self.ema_loss: float | None = None
         self.ema_psnr: float | None = None
 
+    def run_state(self) -> tuple[dict, dict]:
+        """(meta, arrays) of the run state ``_start_run`` creates, for a checkpoint (``load_run_state`` reads it)."""
+        meta = {"iteration": self.iteration, "elapsed": self.elapsed, "rng": self.rng.bit_generator.state,
+                "ema_loss": None if self.ema_loss is None else float(self.ema_loss),
+                "ema_psnr": None if self.ema_psnr is None else float(self.ema_psnr), "history": self.history[-200:]}
+        return meta, {"view_stack": np.asarray(self.view_stack, dtype=np.int64)}
+
+    def load_run_state(self, meta: dict, arrays) -> None:
+        """Continue the run where ``run_state`` left it: iteration, time, random stream, view order, running means."""
+        self.view_stack = [int(x) for x in arrays["view_stack"]]
+        self.iteration = int(meta["iteration"])
+        self.elapsed = float(meta["elapsed"])
+        self.rng = np.random.default_rng()
+        self.rng.bit_generator.state = meta["rng"]
+        self.ema_loss, self.ema_psnr = meta.get("ema_loss"), meta.get("ema_psnr")
+        self.history = list(meta.get("history", []))
+
     # ------------------------------------------------------------------ where the run stands
     def progress(self) -> float:
         c = self.cfg

@@ -663,7 +663,6 @@ class Trainer(TrainingRun):
             "anchors/offsets": a.offsets.detach().cpu().numpy().copy(),
             "anchors/scalings": a.scalings.detach().cpu().numpy().copy(),
             **self.strategy.state_arrays(),
-            "view_stack": np.asarray(self.view_stack, dtype=np.int64),
         }
         for k, v in self.decoder.state_arrays().items():
             arrays[f"decoder/{k}"] = v
@@ -678,13 +677,13 @@ class Trainer(TrainingRun):
                 for k, v in self.rate.state_dict().items():
                     arrays[f"rate/{k}"] = v.detach().cpu().numpy().copy()
         arrays.update(self.opt.state_arrays())
+        run_meta, run_arrays = self.run_state()
+        arrays.update(run_arrays)
         meta = {
             "kind": CHECKPOINT_KIND, "version": CHECKPOINT_VERSION, "config": self.cfg.to_json(),
-            "dataset": str(self.dataset_root), "iteration": self.iteration, "elapsed": self.elapsed,
-            "stage": self.stage, "last_adjust": self.strategy.last_adjust, "voxel_size": a.voxel_size,
-            "decoder": self.decoder.config.to_json(),
-            "rng": self.rng.bit_generator.state, "adam_steps": dict(self.opt.step_count),
-            "ema_loss": _float_or_none(self.ema_loss), "ema_psnr": _float_or_none(self.ema_psnr), "history": self.history[-200:],
+            "dataset": str(self.dataset_root), "stage": self.stage, "last_adjust": self.strategy.last_adjust,
+            "voxel_size": a.voxel_size, "decoder": self.decoder.config.to_json(),
+            "adam_steps": dict(self.opt.step_count), **run_meta,
         }
         return meta, arrays
 
@@ -729,19 +728,9 @@ class Trainer(TrainingRun):
                                  {k[len("rate/"):]: v for k, v in arr.items() if k.startswith("rate/")})
             self.opt.load_arrays(arr, m["adam_steps"])
             self.strategy.load_arrays(arr, m.get("last_adjust", 0))
-            self.view_stack = [int(x) for x in arr["view_stack"]]
-            self.iteration = int(m["iteration"])
-            self.elapsed = float(m["elapsed"])
-            self.rng = np.random.default_rng()
-            self.rng.bit_generator.state = m["rng"]
-            self.ema_loss, self.ema_psnr = m.get("ema_loss"), m.get("ema_psnr")
-            self.history = list(m.get("history", []))
+            self.load_run_state(m, arr)
         except KeyError as e:
             raise ProxycodecError(f"checkpoint is missing {e}", path) from None
-
-
-def _float_or_none(x) -> float | None:
-    return None if x is None else float(x)
 
 
 # ================================================================================================ saving
