@@ -1,6 +1,7 @@
 """Time and memory of converting and encoding a 3DGS PLY against its size: how each stage grows.
 
     python benchmarks/scale.py BASE.ply [--sizes 0.1,0.3,1,3] [--iters 4] [--out DIR]
+    python benchmarks/scale.py BASE.ply --make 1 BIG.ply    # only write the 1M-Gaussian PLY a size is made of
 
 ``BASE.ply``: a real 3DGS PLY (e.g. a bonsai fit). Each size (millions of Gaussians) is made from it: a seeded random
 subset below its own size, the PLY itself at its size, and above it jittered copies of it laid side by side on a grid
@@ -108,7 +109,15 @@ def main(argv=None) -> int:
     ap.add_argument("--iters", type=int, default=4, help="training iterations per size")
     ap.add_argument("--out", default=None)
     ap.add_argument("--one", nargs=2, metavar=("PLY", "JSON"), help=argparse.SUPPRESS)
+    ap.add_argument("--make", nargs=2, metavar=("MILLIONS", "OUT_PLY"),
+                    help="only write the PLY of that size made from BASE (e.g. for a timed `proxycodec encode` of it)")
     args = ap.parse_args(argv)
+    if args.make:
+        if str(REPO) not in sys.path:
+            sys.path.insert(0, str(REPO))
+        made = make_ply(args.base, int(round(float(args.make[0]) * 1e6)), Path(args.make[1]))
+        print(f"{args.make[1]}: {made['gaussians']:,} Gaussians, {made['made_as']}, {made['ply_bytes']:,} B")
+        return 0
     if args.one:
         one(args.one[0], args.iters, args.one[1])
         return 0
