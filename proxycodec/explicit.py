@@ -48,9 +48,9 @@ import torch
 
 from .devices import as_device
 from .errors import ProxycodecError
+from .formats.container import read_container
 from .formats.inria_ply import GaussianPly, rgb_to_sh_dc, write_inria_ply
 from .formats.splats import is_inria_ply
-from .formats.container import read_container, write_container
 from .loop import (
     ProgressFn, TargetImages, TrainingRun, check_run_length, checkpoint_path_for, fmt_time, initial_points, knn_scale,
     ndc_grad_norm, photometric_loss, run_checkpointed,
@@ -433,10 +433,6 @@ class ExplicitTrainer(TrainingRun):
                 "last_densify": self.last_densify, "last_reset": self.last_reset,
                 "adam_steps": dict(self.opt.step_count), **run_meta}
         return meta, arrays
-
-    def save_checkpoint(self, path: str | os.PathLike) -> None:
-        meta, arrays = self.checkpoint_arrays()
-        write_container(path, meta, arrays, level=3)
 
     def load_checkpoint(self, path: str | os.PathLike) -> None:
         """Continue from ``save_checkpoint``'s file; its settings must be this run's but for the run length and

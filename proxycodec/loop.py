@@ -19,12 +19,14 @@ import time
 from collections import OrderedDict
 from collections.abc import Callable
 from pathlib import Path
+from typing import TypeVar
 
 import numpy as np
 import torch
 
 from .devices import CPU, as_device
 from .errors import ProxycodecError
+from .formats.container import write_container
 from .metrics import dssim
 
 __all__ = [
@@ -33,6 +35,7 @@ __all__ = [
 ]
 
 ProgressFn = Callable[[str], None]
+T = TypeVar("T")
 
 
 # ================================================================================================ what a run is given
@@ -212,6 +215,15 @@ class TrainingRun:
                 "ema_psnr": None if self.ema_psnr is None else float(self.ema_psnr), "history": self.history[-200:]}
         return meta, {"view_stack": np.asarray(self.view_stack, dtype=np.int64)}
 
+    def checkpoint_arrays(self) -> tuple[dict, dict]:
+        """(meta, arrays) of everything a resumed run needs (each trainer's own, ``run_state`` included)."""
+        raise NotImplementedError
+
+    def save_checkpoint(self, path: str | os.PathLike) -> None:
+        """``checkpoint_arrays`` as our own container at ``path`` (atomic)."""
+        meta, arrays = self.checkpoint_arrays()
+        write_container(path, meta, arrays, level=3)
+
     def load_run_state(self, meta: dict, arrays) -> None:
         """Continue the run where ``run_state`` left it: iteration, time, random stream, view order, running means."""
         self.view_stack = [int(x) for x in arrays["view_stack"]]
@@ -362,9 +374,9 @@ def checkpoint_path_for(out: str | os.PathLike) -> Path:
 
 
 def run_checkpointed(tr: TrainingRun, ckpt: Path | None, checkpoint_every: float, log: ProgressFn, detail,
-                     hist_extra, finish: Callable[[], None], *, keep_checkpoint: bool = False,
-                     stop_after: int | None = None) -> None:
-    """``run_until_done``, then ``finish()`` (writing the result), with ``tr.save_checkpoint(ckpt)`` every
+                     hist_extra, finish: Callable[[], T], *, keep_checkpoint: bool = False,
+                     stop_after: int | None = None) -> T:
+    """``run_until_done``, then ``finish()`` (writing the result; its value is returned), with ``tr.save_checkpoint(ckpt)`` every
     ``checkpoint_every`` seconds (0: never) and on interrupt or error, in training or in ``finish``: the work is
     kept, never a partial output. After success the checkpoint is removed unless ``keep_checkpoint``. ``ckpt``
     None: no checkpoints at all. ``stop_after`` (tests) raises ``KeyboardInterrupt`` after that many steps of this
@@ -383,7 +395,7 @@ def run_checkpointed(tr: TrainingRun, ckpt: Path | None, checkpoint_every: float
 
     try:
         run_until_done(tr, log, detail, hist_extra, between_steps)
-        finish()
+        result = finish()
     except BaseException:
         if ckpt is not None:
             with contextlib.suppress(Exception):
@@ -393,3 +405,4 @@ def run_checkpointed(tr: TrainingRun, ckpt: Path | None, checkpoint_every: float
     if ckpt is not None and not keep_checkpoint:
         with contextlib.suppress(FileNotFoundError):
             ckpt.unlink()
+    return result

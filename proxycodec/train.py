@@ -37,7 +37,7 @@ from .decoder import DecoderConfig, GaussianDecoder, visible_anchors
 from .devices import as_device, generator
 from .entropy_fit import RateModel
 from .errors import ProxycodecError
-from .formats.container import read_container, write_container
+from .formats.container import read_container
 from .loop import (
     ProgressFn, TargetImages, TrainingRun, check_run_length, check_xi_sampling, checkpoint_path_for, fmt_time,
     initial_points, knn_scale, photometric_loss, run_checkpointed,
@@ -687,10 +687,6 @@ class Trainer(TrainingRun):
         }
         return meta, arrays
 
-    def save_checkpoint(self, path: str | os.PathLike) -> None:
-        meta, arrays = self.checkpoint_arrays()
-        write_container(path, meta, arrays, level=3)
-
     def load_checkpoint(self, path: str | os.PathLike) -> None:
         ck = read_container(path)
         m = ck.meta
@@ -782,17 +778,15 @@ def fit(data, out_ply: str | os.PathLike, config: FitConfig = FitConfig(), *, da
     log(f"fit: {len(data.train_indices)} training views, {tr.anchors.num_anchors} anchors "
         f"(voxel {tr.anchors.voxel_size:.4g}), setup {time.perf_counter() - t_setup:.1f} s; "
         f"iters {config.iters}, time budget {config.time_budget}")
-    saved: list[FitResult] = []
-
-    def finish() -> None:
+    def finish() -> FitResult:
         res = tr.result()
         save_fitted(to_save(res) if to_save else res, out_ply)
-        saved.append(res)
+        return res
 
-    run_checkpointed(tr, ckpt, config.checkpoint_every, log, lambda st: (
+    res = run_checkpointed(tr, ckpt, config.checkpoint_every, log, lambda st: (
         f"xi {st['xi']:.2f}  gauss {st['gaussians']:7d}  anchors {tr.anchors.num_anchors:6d}  "
         f"stage {tr.stage}"), lambda: {"anchors": tr.anchors.num_anchors}, finish, keep_checkpoint=keep_checkpoint,
         stop_after=stop_after)
     log(f"done: {tr.iteration} iterations in {fmt_time(tr.elapsed)}, {tr.anchors.num_anchors} anchors -> "
         f"{out_ply}")
-    return saved[0]
+    return res
