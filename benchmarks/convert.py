@@ -55,6 +55,12 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default=None)
     ap.add_argument("--fresh", action="store_true", help="Ignore earlier results.")
     ap.add_argument("--no-spz", action="store_true")
+    ap.add_argument("--max-width", type=int, default=None,
+                    help="Reference width for every scene (default: the scene's, 400 px); an --input PLY is "
+                         "converted and scored at this width, so give the width it was fitted at.")
+    ap.add_argument("--views", type=int, default=None,
+                    help="Held-out views scored per scene, against the source and against the photos (default: "
+                         "the scene's, 8 for lego, 4 for bonsai).")
     ap.add_argument("--fit", action="append", default=[], metavar="KEY=VALUE",
                     help="Override a field of the conversion's FitConfig (JSON value, else a string), e.g. "
                          "--fit proxy_selection=spread --fit predictor_context=4.")
@@ -80,11 +86,15 @@ def main(argv=None) -> int:
     out = Path(args.out or REPO / "benchmarks" / "results" / ("convert_quick" if args.quick else "convert"))
     meta = {"kind": "proxycodec.bench.convert", "seed": SEED, "quick": args.quick, "machine": machine_info(),
             "versions": versions(), "resolutions": RESOLUTIONS,
-            "fit_overrides": overrides}
+            "fit_overrides": overrides, "max_width": args.max_width, "views": args.views}
     run = Runner(out, meta, fresh=args.fresh)
     rows = {}
     for name in names:
         sc = {**SCENES[name], **(QUICK.get(name, {}) if args.quick else {})}
+        if args.max_width:
+            sc["max_width"] = args.max_width
+        if args.views:
+            sc["views"] = sc["photo_views"] = args.views
         rows[name] = _scene(run, name, sc, inputs.get(name), not args.no_spz, overrides)
     run.finish()
     report = _report(run, rows)
