@@ -36,7 +36,7 @@ from .formats.container import (
 from .model import SceneModel, SceneRender, weights_path_for
 from .scaffold_gs import find_scaffold_files, is_scaffold_output, load_scaffold_output
 from .proxy import (
-    PredictorConfig, ResidualPredictor, TrainConfig, TrainResult, default_cell_size, nearest_proxies,
+    PredictorConfig, ResidualPredictor, TrainConfig, TrainResult, default_cell_size, predictor_neighbours,
     check_proxy_selection, load_fitted_predictor, select_proxies, torch_threads, train_predictor,
 )
 from .scene import AnchorScene
@@ -384,6 +384,8 @@ def _build(model: SceneModel, fitted: tuple, cfg: EncodeConfig, predictor: Resid
     # proxies and the predictor to start from (those of stage-2 training, when the scene comes from ``fit``)
     mask, predictor, cfg, cell_size, proxy_source = _choose_proxies(cfg, pos_sorted, voxel, coding.order, fitted,
                                                                     predictor, say)
+    if proxy_source == "fit":
+        predictor = _rule_reproducing_leaves(predictor, pos_sorted, mask, feats, offs, say)
     # quantise what is stored; fit the predictor against what the decoder will see
     steps = _learned_steps(scene.metadata, cfg, Fd, K)
     q = quantize_anchors(feats, offs, scal, mask, feature_bits=cfg.feature_bits, offset_bits=cfg.offset_bits,
@@ -643,6 +645,44 @@ def _choose_proxies(cfg: EncodeConfig, pos_sorted: np.ndarray, voxel: float, ord
     return mask, predictor, cfg, cell_size, "fit" if use_fitted else "encode"
 
 
+#: A stage-2 predictor reproduces its scene's leaves when its predictions from the stored proxies are within this of
+#: the leaves' features (the PLY holds them as training rendered them; float32 on another device or thread count
+#: differs by ~1e-5).
+LEAF_MATCH = 1e-3
+
+
+def _rule_reproducing_leaves(pred: ResidualPredictor, pos_sorted: np.ndarray, mask: np.ndarray, feats: np.ndarray,
+                             offs: np.ndarray, say: Progress) -> ResidualPredictor:
+    """The stage-2 predictor under the tie rule (``nearest.TIES``) with which it reproduces the scene's leaves: its
+    own when it does (always, for scenes fitted since the "grid" rule), else the first that does. A conversion
+    written before that rule trained in its canonical frame and stored world coordinates, where "position" breaks
+    the grid's ties otherwise than training did (bonsai: every leaf's neighbours changed, -3.7 dB decoded); "grid"
+    finds training's neighbours again. When no rule reproduces them the predictor is kept and the gap reported."""
+    from dataclasses import replace as _replace
+
+    leaves = np.flatnonzero(~mask)
+    if not len(leaves):
+        return pred
+    pos_t, f_t, o_t = (torch.from_numpy(np.ascontiguousarray(x)) for x in (pos_sorted, feats, offs))
+    lv = torch.from_numpy(leaves)
+    errors = {}
+    for rule in dict.fromkeys([pred.config.ties, "grid", "position", "index"]):
+        cand = ResidualPredictor.from_arrays(_replace(pred.config, ties=rule), pred.state_arrays()).eval()
+        near = torch.from_numpy(predictor_neighbours(pos_sorted, mask, cand.config))
+        with torch.no_grad(), torch_threads(1):
+            f, _ = cand.predict(pos_t, f_t, near, lv, o_t)
+        errors[rule] = float((f - f_t[lv]).abs().max())
+        if errors[rule] <= LEAF_MATCH:
+            if rule != pred.config.ties:
+                say(f"the stage-2 predictor's tie rule {pred.config.ties!r} does not reproduce the scene's leaves "
+                    f"(max feature error {errors[pred.config.ties]:.3g}); {rule!r} does (max {errors[rule]:.2g}): "
+                    f"encoding with it")
+            return cand
+    say(f"warning: the stage-2 predictor reproduces the scene's leaves under no tie rule (max feature error "
+        + ", ".join(f"{r} {e:.3g}" for r, e in errors.items()) + "); the container decodes its own predictions")
+    return pred
+
+
 def _fit_predictor(cfg: EncodeConfig, predictor: ResidualPredictor | None, pos_sorted: np.ndarray, mask: np.ndarray,
                    q: QuantizedAnchors, offs: np.ndarray, Fd: int, K: int, voxel: float, say: Progress,
                    device=None):
@@ -661,7 +701,7 @@ def _fit_predictor(cfg: EncodeConfig, predictor: ResidualPredictor | None, pos_s
     else:
         torch.manual_seed(cfg.seed)
         pred = ResidualPredictor(pcfg)
-    nearest = nearest_proxies(pos_sorted, mask, pcfg.context, pcfg.ties)
+    nearest = predictor_neighbours(pos_sorted, mask, pcfg)
     tcfg = TrainConfig(iters=cfg.predictor_iters, lr=cfg.predictor_lr, lr_final=cfg.predictor_lr / 10,
                        sample_frac=cfg.leaf_sample, seed=cfg.seed)
 
@@ -799,7 +839,7 @@ def _model_from_sections_unchecked(meta: dict, sections: dict[str, np.ndarray], 
     pos_t, feat_t, off_t = torch.from_numpy(pos), torch.from_numpy(a.features), torch.from_numpy(a.offsets)
     leaves = torch.from_numpy(np.flatnonzero(~mask))
     if leaves.numel():
-        nearest = torch.from_numpy(nearest_proxies(pos, mask, pcfg.context, pcfg.ties))
+        nearest = torch.from_numpy(predictor_neighbours(pos, mask, pcfg))
         with torch.no_grad(), torch_threads(1):  # fixed thread count: the same bits in encoder and decoder
             for s in range(0, leaves.numel(), PREDICT_CHUNK):
                 lv = leaves[s:s + PREDICT_CHUNK]

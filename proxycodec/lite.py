@@ -42,7 +42,7 @@ import numpy as np
 from .camera import Camera, check_xi
 from .camera import default_cameras as _default_cameras
 from .formats.container import ContainerError
-from .nearest import nearest_proxies
+from .nearest import predictor_neighbours
 from .netconfig import DecoderConfig, PredictorConfig
 from .render._project_kernels import constants, project_forward
 from .render._raster_kernels import rasterize_forward
@@ -420,7 +420,7 @@ def _scene_from_sections(meta: dict, sections: dict[str, np.ndarray], err) -> Li
     pos, feats, offs, mask = a.positions, a.features, a.offsets, a.proxy_mask
     leaves = np.flatnonzero(~mask)
     if leaves.size:
-        nearest = nearest_proxies(pos, mask, a.predictor_config.context, a.predictor_config.ties)
+        nearest = predictor_neighbours(pos, mask, a.predictor_config)
         for s in range(0, leaves.size, PREDICT_CHUNK):
             lv = leaves[s:s + PREDICT_CHUNK]
             f_pred, o_pred = predictor.predict(pos, feats, nearest, lv, offs)

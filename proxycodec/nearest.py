@@ -16,13 +16,21 @@ BRUTE_FORCE_PAIRS = 16_000_000
 #: the "ties" field existed; the order then depends on how the anchors are stored, and a trainer's order is not the
 #: container's Morton order). "position": the lexicographically smaller (x, y, z) first, whatever the storage order
 #: (the index only between proxies at the same position). Anchors sit on a voxel grid, so exact ties are common:
-#: on lego (context 4) 9% of the leaves' rows changed with the storage order under "index".
-TIES = ("index", "position")
+#: on lego (context 4) 9% of the leaves' rows changed with the storage order under "index". "grid": "position", with
+#: distances measured on the lattice of 1/GRID_STEPS of ``unit`` (the predictor's ``dist_ref``, the voxel size) from
+#: the proxies' lowest corner: positions are rounded to it, so the squared distances are exact integers and a tie
+#: stays a tie when the positions are moved and scaled (a conversion trains in a canonical frame and stores world
+#: coordinates: under "position" float32 rounding broke the grid's ties differently, and 100% of a 20k-anchor
+#: conversion's leaves decoded from other neighbours than they were trained with; -3.7 dB).
+TIES = ("index", "position", "grid")
+GRID_STEPS = 16
 
 
-def _split(positions, proxy_mask, ties: str = "position") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _split(positions, proxy_mask, ties: str = "position", unit: float | None = None
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(float64 positions, proxy indices in tie-break order, leaf indices); a leaf without any proxy is an error.
-    Every search below prefers the earlier of two equidistant proxies in the returned proxy order."""
+    Every search below prefers the earlier of two equidistant proxies in the returned proxy order. Under "grid" the
+    positions returned are lattice coordinates (integers in float64)."""
     if ties not in TIES:
         raise ProxycodecError(f"unknown tie rule {ties!r}; choose from {', '.join(TIES)}")
     p = np.asarray(positions, dtype=np.float64)
@@ -30,22 +38,29 @@ def _split(positions, proxy_mask, ties: str = "position") -> tuple[np.ndarray, n
     pidx, leaves = np.flatnonzero(mask), np.flatnonzero(~mask)
     if len(leaves) and not len(pidx):
         raise ProxycodecError("no proxy anchors: every leaf needs a proxy")
-    if ties == "position" and len(pidx) > 1:
+    if ties == "grid":
+        if unit is None or not (np.isfinite(unit) and unit > 0):
+            raise ProxycodecError(f"the grid tie rule needs a positive length unit, got {unit!r}")
+        if len(p):
+            origin = p[pidx].min(0) if len(pidx) else p.min(0)
+            p = np.round((p - origin) * (GRID_STEPS / float(unit)))
+    if ties in ("position", "grid") and len(pidx) > 1:
         q = p[pidx]
         pidx = pidx[np.lexsort((q[:, 2], q[:, 1], q[:, 0]))]  # stable: the same position keeps index order
     return p, pidx, leaves
 
 
-def nearest_proxy(positions, proxy_mask, ties: str = "position", *, brute_force_pairs: int = BRUTE_FORCE_PAIRS
-                  ) -> np.ndarray:
+def nearest_proxy(positions, proxy_mask, ties: str = "position", *, unit: float | None = None,
+                  brute_force_pairs: int = BRUTE_FORCE_PAIRS) -> np.ndarray:
     """[M] int64: index (into ``positions``) of each anchor's nearest proxy; proxies map to themselves.
 
     Distances are squared Euclidean, computed in float64 as ((a - b)^2).sum() on the given coordinates; ties go to
     the first proxy in ``ties`` order (``TIES``). Encoder and decoder call this on the same stored positions with
     the container's rule, so they always agree; with "position" a trainer's anchor order agrees with them too.
-    ``positions``: [M, 3] array-like (numpy; ``proxy.nearest_proxy`` also takes tensors).
+    ``positions``: [M, 3] array-like (numpy; ``proxy.nearest_proxy`` also takes tensors). ``unit``: the lattice's
+    length unit under "grid".
     """
-    p, pidx, leaves = _split(positions, proxy_mask, ties)
+    p, pidx, leaves = _split(positions, proxy_mask, ties, unit)
     out = np.arange(len(p), dtype=np.int64)
     if len(leaves) == 0:
         return out
@@ -81,14 +96,14 @@ def nearest_proxy(positions, proxy_mask, ties: str = "position", *, brute_force_
     return out
 
 
-def nearest_proxies(positions, proxy_mask, k: int, ties: str = "position", *,
+def nearest_proxies(positions, proxy_mask, k: int, ties: str = "position", *, unit: float | None = None,
                     brute_force_pairs: int = BRUTE_FORCE_PAIRS) -> np.ndarray:
     """[M, k] int64: each leaf's ``k`` nearest proxies, nearest first (column 0 is ``nearest_proxy``); a proxy's
     row holds itself k times. Order: squared float64 distance as in ``nearest_proxy``, ties by ``ties``
     (``TIES``); ``k`` larger than the number of proxies repeats the farthest one."""
     if k == 1:
-        return nearest_proxy(positions, proxy_mask, ties, brute_force_pairs=brute_force_pairs)[:, None]
-    p, pidx, leaves = _split(positions, proxy_mask, ties)
+        return nearest_proxy(positions, proxy_mask, ties, unit=unit, brute_force_pairs=brute_force_pairs)[:, None]
+    p, pidx, leaves = _split(positions, proxy_mask, ties, unit)
     out = np.repeat(np.arange(len(p), dtype=np.int64)[:, None], k, axis=1)
     if len(leaves) == 0:
         return out
@@ -122,3 +137,10 @@ def nearest_proxies(positions, proxy_mask, k: int, ties: str = "position", *,
         res[r] = pick(np.arange(len(pidx))[None, :], dr[None, :])[0]
     out[leaves] = res
     return out
+
+
+def predictor_neighbours(positions, proxy_mask, config, *, brute_force_pairs: int = BRUTE_FORCE_PAIRS) -> np.ndarray:
+    """[M, context] the proxies a predictor of ``config`` (``PredictorConfig`` or ``ProxyLeafConfig``) sees per
+    anchor, under its tie rule (the lattice unit of "grid": its ``dist_ref``)."""
+    return nearest_proxies(positions, proxy_mask, int(getattr(config, "context", 1)), getattr(config, "ties", "index"),
+                           unit=getattr(config, "dist_ref", None), brute_force_pairs=brute_force_pairs)

@@ -143,17 +143,20 @@ class PredictorConfig:
     # proxies the predictor sees: the nearest (the residual's base) and, beyond 1, the next ones as context
     # (their feature minus the nearest's, and their own distance/direction encoding)
     context: int = 1
-    # how equidistant proxies are ordered (``nearest.TIES``): "position" makes the order the predictor was trained
-    # with the order every decoder finds, whatever the anchors' storage order; configurations written before the
-    # field existed read as "index" (``from_json``), so their files decode as they always did
-    ties: str = "position"
+    # how equidistant proxies are ordered (``nearest.TIES``): "grid" makes the order the predictor was trained with
+    # the order every decoder finds, whatever the anchors' storage order and frame (lattice unit: dist_ref);
+    # configurations written before the field existed read as "index" (``from_json``), files of the "position" rule
+    # keep it, so their files decode as they always did
+    ties: str = "grid"
 
     def __post_init__(self) -> None:
         for k in ("feat_dim", "n_offsets", "hidden"):
             if not 1 <= int(getattr(self, k)) <= 4096:
                 raise ProxycodecError(f"predictor {k} = {getattr(self, k)} is out of range")
-        if self.ties not in ("index", "position"):
-            raise ProxycodecError(f"predictor ties = {self.ties!r}: must be 'index' or 'position'")
+        if self.ties not in ("index", "position", "grid"):
+            raise ProxycodecError(f"predictor ties = {self.ties!r}: must be 'index', 'position' or 'grid'")
+        if not (math.isfinite(float(self.dist_ref)) and float(self.dist_ref) > 0):
+            raise ProxycodecError(f"predictor dist_ref = {self.dist_ref!r}: must be positive")
         if not 1 <= int(self.context) <= 8:
             raise ProxycodecError(f"predictor context = {self.context} is out of range (1..8 proxies)")
         for k in ("n_blocks", "pe_dist_freqs", "pe_dir_freqs"):

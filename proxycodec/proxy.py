@@ -43,7 +43,7 @@ __all__ = [
     "default_cell_size", "select_proxies", "nearest_proxy", "nearest_proxies", "nearest_column", "PredictorConfig",
     "ResidualPredictor", "predictor_inputs", "predictor_geometry", "recon_loss", "offset_recon_loss", "TrainConfig",
     "TrainResult", "train_predictor", "proxies_per_cell", "PROXY_SELECTIONS", "check_proxy_selection", "RECON_LOSSES",
-    "PREDICTOR_KINDS", "ProxyLeafConfig", "ProxyLeafMLP", "predictor_from_json", "load_fitted_predictor",
+    "PREDICTOR_KINDS", "predictor_neighbours", "ProxyLeafConfig", "ProxyLeafMLP", "predictor_from_json", "load_fitted_predictor",
 ]
 
 
@@ -165,18 +165,26 @@ def _spread_keys(p: np.ndarray, cell: np.ndarray, counts: np.ndarray, starts: np
 BRUTE_FORCE_PAIRS = _nearest.BRUTE_FORCE_PAIRS
 
 
-def nearest_proxies(positions, proxy_mask, k: int = 1, ties: str = "position") -> np.ndarray:
+def nearest_proxies(positions, proxy_mask, k: int = 1, ties: str = "position", unit: float | None = None
+                    ) -> np.ndarray:
     """[M, k] int64: each anchor's ``k`` nearest proxies, nearest first (``nearest.nearest_proxies``; ``ties``: a
-    predictor configuration's rule)."""
+    predictor configuration's rule; ``unit``: its lattice unit under "grid")."""
     p = positions.detach().cpu().numpy() if isinstance(positions, torch.Tensor) else positions
-    return _nearest.nearest_proxies(p, proxy_mask, k, ties, brute_force_pairs=BRUTE_FORCE_PAIRS)
+    return _nearest.nearest_proxies(p, proxy_mask, k, ties, unit=unit, brute_force_pairs=BRUTE_FORCE_PAIRS)
 
 
-def nearest_proxy(positions, proxy_mask, ties: str = "position") -> np.ndarray:
+def predictor_neighbours(positions, proxy_mask, config) -> np.ndarray:
+    """[M, context] the proxies a predictor of ``config`` sees per anchor, under its tie rule
+    (``nearest.predictor_neighbours``; ``positions``: an array or a tensor)."""
+    p = positions.detach().cpu().numpy() if isinstance(positions, torch.Tensor) else positions
+    return _nearest.predictor_neighbours(p, proxy_mask, config, brute_force_pairs=BRUTE_FORCE_PAIRS)
+
+
+def nearest_proxy(positions, proxy_mask, ties: str = "position", unit: float | None = None) -> np.ndarray:
     """[M] int64: index (into ``positions``, an array or a tensor) of each anchor's nearest proxy; proxies map to
     themselves. Ties go to the first proxy in ``ties`` order (``nearest.nearest_proxy`` has the details)."""
     p = positions.detach().cpu().numpy() if isinstance(positions, torch.Tensor) else positions
-    return _nearest.nearest_proxy(p, proxy_mask, ties, brute_force_pairs=BRUTE_FORCE_PAIRS)
+    return _nearest.nearest_proxy(p, proxy_mask, ties, unit=unit, brute_force_pairs=BRUTE_FORCE_PAIRS)
 
 
 # ---------------------------------------------------------------------------------------------- predictor
@@ -346,8 +354,8 @@ class ProxyLeafConfig:
                 raise ProxycodecError(f"predictor {k} = {getattr(self, k)} is out of range")
         if self.kind != "proxy-leaf-mlp" or self.predict_offsets:
             raise ProxycodecError("a Proxy&Leaf MLP predicts features only")
-        if self.ties not in _nearest.TIES:
-            raise ProxycodecError(f"predictor ties = {self.ties!r}: must be one of {', '.join(_nearest.TIES)}")
+        if self.ties not in ("index", "position"):  # no length unit for "grid"
+            raise ProxycodecError(f"predictor ties = {self.ties!r}: must be 'index' or 'position'")
         if not (math.isfinite(self.scene_radius) and self.scene_radius > 0):
             raise ProxycodecError(f"predictor scene_radius must be positive, got {self.scene_radius}")
 
@@ -506,9 +514,8 @@ def train_predictor(
     predictor.to(dev)
     mask_np = np.asarray(proxy_mask.cpu() if isinstance(proxy_mask, torch.Tensor) else proxy_mask, dtype=bool)
     mask = torch.from_numpy(mask_np).to(dev)
-    context = 1 if isinstance(predictor, ProxyLeafMLP) else cfg.context
     if nearest is None:
-        nearest = nearest_proxies(positions, mask_np, context, cfg.ties)
+        nearest = predictor_neighbours(positions, mask_np, cfg)
     nearest = torch.as_tensor(np.asarray(nearest.cpu() if isinstance(nearest, torch.Tensor) else nearest),
                               dtype=torch.long).to(dev)
     leaves = (~mask).nonzero().squeeze(1)

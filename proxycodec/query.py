@@ -1,7 +1,8 @@
 """Anchor features at arbitrary 3D points (supplement section 8.1): what an anchor that formed at a point would hold.
 
-For each query point q: its nearest proxies among the scene's proxies (``nearest.nearest_proxies``, the decoder's
-exact float64 search, ties to the smallest stored index; as many as the predictor's ``context``), then the residual
+For each query point q: its nearest proxies among the scene's proxies (``nearest.predictor_neighbours``, the
+decoder's search under the predictor's tie rule; as many as the predictor's ``context``; under "grid" q is rounded
+to the lattice of 1/16 voxel for the search, which a leaf's position already lies on), then the residual
 predictor as it regenerates a leaf (``f~_q = f_k + delta_f(f_k, PE(log |q - v_k|), PE(unit(q - v_k)))``), then the
 resolution embedding at xi (``GaussianDecoder.embed``: FiLM ``(1 + gamma) f + beta`` at q's position). So at a leaf
 anchor's own position the query gives that leaf's decoded feature, embedded as the renderer embeds it.
@@ -28,7 +29,7 @@ from .devices import as_device
 from .errors import ProxycodecError
 from .formats.container import MAGIC
 from .model import SceneModel, weights_path_for
-from .nearest import nearest_proxies
+from .nearest import predictor_neighbours
 from .sections import PREDICT_CHUNK
 
 __all__ = ["FeatureField", "query_features"]
@@ -141,10 +142,9 @@ class FeatureField:
         feats = torch.cat([self.proxy_features, self.proxy_features.new_zeros(N, self.feat_dim)])
         offs = torch.cat([self.proxy_offsets, self.proxy_offsets.new_zeros((N,) + tuple(self.proxy_offsets.shape[1:]))])
         pcfg = getattr(self.predictor, "config", None)
-        context, ties = int(getattr(pcfg, "context", 1)), getattr(pcfg, "ties", "index")
         mask = np.zeros(P + N, dtype=bool)
         mask[:P] = True  # the proxies, in their stored order: ties go to the same proxy as in decoding
-        nearest = torch.from_numpy(nearest_proxies(pos.cpu().numpy(), mask, context, ties)).to(dev)
+        nearest = torch.from_numpy(predictor_neighbours(pos.cpu().numpy(), mask, pcfg)).to(dev)
         with torch.no_grad(), torch_threads(1):  # fixed thread count, as the decoder regenerates leaves
             for s in range(0, N, PREDICT_CHUNK):
                 rows = torch.arange(P + s, P + min(N, s + PREDICT_CHUNK), device=dev)

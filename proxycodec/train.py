@@ -47,7 +47,7 @@ from .netconfig import PredictorConfig
 from .optim import Adam, exp_lr
 from .proxy import (
     PREDICTOR_KINDS, RECON_LOSSES, ProxyLeafConfig, TrainConfig, check_proxy_selection, default_cell_size,
-    nearest_proxies, offset_recon_loss, predictor_from_json, recon_loss, select_proxies, train_predictor,
+    predictor_neighbours, offset_recon_loss, predictor_from_json, recon_loss, select_proxies, train_predictor,
 )
 from .render.project import GateConfig
 from .scene import AnchorScene
@@ -540,14 +540,15 @@ class Trainer(TrainingRun):
     def _setup_proxies(self, mask: np.ndarray) -> None:
         a = self.anchors
         self.proxy_mask = torch.from_numpy(np.asarray(mask, dtype=bool)).to(self.device)
-        ctx = self.cfg.predictor_context if self.cfg.predictor == "residual" else 1
         if self.predictor is None:
             self.predictor = predictor_from_json(self._predictor_config().to_json())
-        elif self.predictor.config.ties != "position":
+        elif isinstance(self.predictor.config, PredictorConfig) and self.predictor.config.ties != "grid":
             # a predictor from a file written before the rule (distillation's start): it trains on from here, so it
-            # takes the rule under which the trainer's anchor order and the container's give the same neighbours
-            self.predictor.config = replace(self.predictor.config, ties="position")
-        self.nearest = torch.from_numpy(nearest_proxies(a.positions, mask, ctx, "position")).long().to(self.device)
+            # takes the rule under which the trainer's anchors and the container's give the same neighbours, in
+            # any frame (``nearest.TIES``)
+            self.predictor.config = replace(self.predictor.config, ties="grid")
+        self.nearest = torch.from_numpy(predictor_neighbours(a.positions, mask, self.predictor.config)
+                                        ).long().to(self.device)
         self.leaves = (~self.proxy_mask).nonzero().squeeze(1)
         self.predictor.to(self.device)
         for k, p in self.predictor.named_parameters():

@@ -266,7 +266,7 @@ class TestFittedPredictor:
         r2 = codec.encode(ply, tmp_path / "t.pxc", use_fitted=False, **FAST)
         assert r2.meta["proxy"]["source"] == "encode"
 
-    @pytest.mark.parametrize("ties", ["position", "index"])
+    @pytest.mark.parametrize("ties", ["grid", "position", "index"])
     def test_decoded_leaves_are_the_fitted_scene_s_leaves(self, tmp_path, ties):
         """A fit writes its leaves as its predictor predicts them in the trainer's anchor order; the container
         regenerates them in Morton order. With every attribute stored in float32 they must agree: on a voxel grid
@@ -286,7 +286,7 @@ class TestFittedPredictor:
             torch.nn.init.normal_(p, std=0.1)
         s = m.scene
         leaves = torch.from_numpy(np.flatnonzero(~mask))
-        near = torch.from_numpy(nearest_proxies(s.positions, mask, 4, ties))
+        near = torch.from_numpy(nearest_proxies(s.positions, mask, 4, ties, VOXEL))
         with torch.no_grad():  # what fit's result writes: the leaves as predicted, in its own anchor order
             feats = s.features.clone()
             feats[leaves] = pred.predict(s.positions, s.features, near, leaves)[0]
@@ -302,7 +302,7 @@ class TestFittedPredictor:
         dec = codec.decode(tmp_path / "s.pxc")
         idx = _match(s.positions.numpy(), dec.scene.positions.numpy())
         err = np.abs(dec.scene.features.numpy() - feats.numpy()[idx]).max(1)
-        if ties == "position":
+        if ties != "index":
             assert err.max() < 1e-5
         else:  # the old rule: the storage orders disagree on some leaves (why "position" exists)
             assert (err > 1e-3).sum() > 0.02 * len(leaves)

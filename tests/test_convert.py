@@ -466,6 +466,50 @@ def _scaled(ply: GaussianPly, k: float, shift=(0.0, 0.0, 0.0)) -> GaussianPly:
                        ply.scales.astype(np.float64) + math.log(k), ply.quats)
 
 
+def _decoded_leaf_error(tmp_path, scene_ply, log):
+    """Max |feature| difference between the anchor scene at ``scene_ply`` and its container decoded (every attribute
+    stored as float, float32 MLP weights: what is left is the leaves' regeneration)."""
+    from scipy.spatial import cKDTree
+
+    from proxycodec.codec import EncodeConfig, decode, encode
+    from proxycodec.model import SceneModel
+
+    encode(scene_ply, tmp_path / "c.pxc", EncodeConfig(entropy="zstd", feature_bits=32, offset_bits=32,
+                                                        scaling_bits=32, weights_dtype="f32"), progress=log.append)
+    a, b = SceneModel.load(scene_ply).scene, decode(tmp_path / "c.pxc").scene
+    _, j = cKDTree(b.positions.double().numpy()).query(a.positions.double().numpy())
+    return float((b.features[j] - a.features).abs().max())
+
+
+def test_the_container_decodes_the_leaves_the_conversion_trained(tmp_path):
+    """A conversion trains in a canonical frame and stores world coordinates: the container's decoder finds, for
+    every leaf, the proxies training predicted it from (the predictor's "grid" tie rule), so the decoded leaves are
+    the anchor scene's (under "position", float32 world coordinates broke the grid's ties otherwise: 1.29 here)."""
+    write_inria_ply(tmp_path / "s.ply", _scaled(_ball(300), 10.0, (3.0, 1.0, 2.0)))
+    convert(tmp_path / "s.ply", tmp_path / "a.ply", _tiny_config(), log=lambda s: None)
+    log = []
+    assert _decoded_leaf_error(tmp_path, tmp_path / "a.ply", log) < 1e-5
+    assert not any("tie rule" in s for s in log)
+
+
+def test_encode_finds_the_tie_rule_of_a_conversion_written_before_the_grid_rule(tmp_path, monkeypatch):
+    """A conversion whose predictor says "position" (written before "grid"): encode sees that the rule does not
+    reproduce the scene's leaves, says so, and encodes under the rule that does."""
+    import proxycodec.train as train
+
+    made = train.Trainer._predictor_config
+    monkeypatch.setattr(train.Trainer, "_predictor_config", lambda self: replace(made(self), ties="position"))
+    write_inria_ply(tmp_path / "s.ply", _scaled(_ball(300), 10.0, (3.0, 1.0, 2.0)))
+    convert(tmp_path / "s.ply", tmp_path / "a.ply", _tiny_config(), log=lambda s: None)
+    from proxycodec.model import weights_path_for
+    from proxycodec.proxy import load_fitted_predictor
+
+    assert load_fitted_predictor(weights_path_for(tmp_path / "a.ply"))[0].config.ties == "position"
+    log = []
+    assert _decoded_leaf_error(tmp_path, tmp_path / "a.ply", log) < 1e-5
+    assert any("tie rule 'position' does not reproduce the scene's leaves" in s and "'grid' does" in s for s in log)
+
+
 @pytest.mark.parametrize("k", [1000.0, 0.001])
 def test_results_do_not_depend_on_the_scene_s_units(tmp_path, k):
     """The same PLY in other units (x1000 / x0.001, moved away from the origin) converts to the same scene: the

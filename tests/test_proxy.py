@@ -233,11 +233,34 @@ class TestNearestProxy:
         with pytest.raises(ProxycodecError, match="tie rule"):
             nearest_proxies(p, mask, k, "nearest")
 
+    @pytest.mark.parametrize("k", [1, 4])
+    def test_grid_ties_survive_moving_and_scaling_the_anchors(self, k, monkeypatch):
+        """A conversion trains in a canonical frame and stores world coordinates (x 10.77, moved, float32): under
+        "grid" (lattice unit scaled alike) every anchor keeps the neighbours it had, on both search paths, and they
+        are the exact "position" order of the grid; "position" on the moved float32 coordinates loses some."""
+        import proxycodec.proxy as proxy
+        from proxycodec.proxy import nearest_proxies
+
+        voxel, s, c = 0.05, 10.77029200363159, np.array([-0.0748, 1.4511, 4.5864])
+        p = grid_points(300, size=(10, 10, 3), voxel=voxel, seed=k) + np.float32(0.5 * voxel)  # voxel centres
+        mask = select_proxies(p, 0.15, 0.3, k)
+        world = (p.astype(np.float64) * s + c).astype(np.float32)
+        exact = nearest_proxies(np.round(p / voxel * 2), mask, k, "position")  # integer lattice: exact ties
+        assert np.array_equal(nearest_proxies(p, mask, k, "grid", voxel), exact)
+        assert np.array_equal(nearest_proxies(world, mask, k, "grid", voxel * s), exact)
+        assert not np.array_equal(nearest_proxies(world, mask, k, "position"), exact)
+        monkeypatch.setattr(proxy, "BRUTE_FORCE_PAIRS", 0)
+        assert np.array_equal(nearest_proxies(world, mask, k, "grid", voxel * s), exact)
+        for unit in (None, 0.0, float("nan")):
+            with pytest.raises(ProxycodecError, match="length unit"):
+                nearest_proxies(world, mask, k, "grid", unit)
+
     def test_predictor_configurations_written_before_the_tie_rule_read_as_index(self):
         from proxycodec.proxy import PredictorConfig, ProxyLeafConfig
 
-        assert PredictorConfig().ties == "position" and PredictorConfig.from_json(PredictorConfig().to_json()).ties \
-            == "position"
+        assert PredictorConfig().ties == "grid" and PredictorConfig.from_json(PredictorConfig().to_json()).ties \
+            == "grid"
+        assert PredictorConfig.from_json(PredictorConfig(ties="position").to_json()).ties == "position"
         old = {k: v for k, v in PredictorConfig(context=4).to_json().items() if k != "ties"}
         assert PredictorConfig.from_json(old).ties == "index"
         old_pl = {k: v for k, v in ProxyLeafConfig().to_json().items() if k != "ties"}
@@ -281,8 +304,8 @@ class TestPredictor:
         mask = select_proxies(pos, 0.15, 0.3, 0)
         pred = ResidualPredictor(PredictorConfig(hidden=32, dist_ref=0.05))
         r = train_predictor(pred, pos, feats, mask, config=TrainConfig(iters=150, lr=3e-3))
-        # the baseline is the proxy-copy prediction over all leaves
-        nn = nearest_proxy(pos, mask)
+        # the baseline is the proxy-copy prediction over all leaves (neighbours under the predictor's rule)
+        nn = nearest_proxy(pos, mask, pred.config.ties, pred.config.dist_ref)
         leaves = np.flatnonzero(~mask)
         base = float(recon_loss(feats[nn[leaves]], feats[leaves]))
         assert r.baseline_loss == pytest.approx(base, rel=1e-5)

@@ -16,7 +16,7 @@ from proxycodec import codec
 from proxycodec.errors import ProxycodecError
 from proxycodec.model import SceneModel
 from proxycodec.netconfig import PredictorConfig
-from proxycodec.proxy import ResidualPredictor, nearest_proxies, predictor_inputs, select_proxies
+from proxycodec.proxy import ResidualPredictor, nearest_proxies, predictor_inputs, predictor_neighbours, select_proxies
 from proxycodec.query import FeatureField, query_features
 from test_codec import FAST, tiny_model
 
@@ -110,7 +110,7 @@ def test_between_anchors_the_nearest_proxy_decides(container):
     m = np.concatenate([mask, np.zeros(len(pts), bool)])
     pred = codec.load(container).predictor()
     assert pred.config.context == 4  # encode's default: the points' context proxies are found as the leaves' are
-    near = torch.from_numpy(nearest_proxies(allpos, m, pred.config.context, pred.config.ties))
+    near = torch.from_numpy(nearest_proxies(allpos, m, pred.config.context, pred.config.ties, pred.config.dist_ref))
     feats = torch.cat([s.features, torch.zeros(len(pts), 32)])
     offs = torch.cat([s.offsets, torch.zeros(len(pts), 10, 3)])
     with torch.no_grad():
@@ -146,7 +146,8 @@ def test_sources_model_with_predictor_and_fitted_ply(container, tmp_path):
                     extra_arrays=arrays)
     leaves = np.flatnonzero(~mask)
     with torch.no_grad():
-        want_raw = pred.predict(s.positions, s.features, torch.from_numpy(nearest_proxies(s.positions, mask, 1)),
+        want_raw = pred.predict(s.positions, s.features, torch.from_numpy(predictor_neighbours(s.positions, mask,
+                                                                                               pred.config)),
                                 torch.from_numpy(leaves))[0]
         want = m.decoder.embed(s.positions[leaves], want_raw, 0.7).numpy()
     got = query_features(ply, s.positions.numpy()[leaves], 0.7)
