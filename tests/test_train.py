@@ -199,9 +199,9 @@ class TestFit:
         assert pred is not None and mask.dtype == bool and 0 < mask.sum() < len(mask)
         m = SceneModel.load(out)
         assert m.scene.num_anchors == len(mask)
-        from proxycodec.proxy import nearest_proxies
+        from proxycodec.proxy import predictor_neighbours
 
-        near = torch.from_numpy(nearest_proxies(m.scene.positions, mask, pred.config.context))
+        near = torch.from_numpy(predictor_neighbours(m.scene.positions, mask, pred.config))
         leaves = torch.from_numpy(~mask).nonzero().squeeze(1)
         with torch.no_grad():
             f, _ = pred.predict(m.scene.positions, m.scene.features, near, leaves)
@@ -280,8 +280,8 @@ class TestFit:
         resumed run ends where an uninterrupted one does, and encode stores proxy offsets only."""
         from proxycodec.codec import EncodeConfig, decode, encode
         from proxycodec.model import SceneModel, weights_path_for
-        from proxycodec.proxy import nearest_proxies
         from proxycodec.proxy import load_fitted_predictor as load_predictor
+        from proxycodec.proxy import predictor_neighbours
 
         cfg = small_config(iters=24, predict_offsets=True)
         out = tmp_path / "po.ply"
@@ -290,7 +290,7 @@ class TestFit:
         assert pred.config.predict_offsets
         m = SceneModel.load(out)
         s = m.scene
-        near = torch.from_numpy(nearest_proxies(s.positions, mask, pred.config.context))
+        near = torch.from_numpy(predictor_neighbours(s.positions, mask, pred.config))
         leaves = torch.from_numpy(~mask).nonzero().squeeze(1)
         with torch.no_grad():
             f, o = pred.predict(s.positions, s.features, near, leaves, s.offsets)
