@@ -658,8 +658,6 @@ def _rule_reproducing_leaves(pred: ResidualPredictor, pos_sorted: np.ndarray, ma
     written before that rule trained in its canonical frame and stored world coordinates, where "position" breaks
     the grid's ties otherwise than training did (bonsai: every leaf's neighbours changed, -3.7 dB decoded); "grid"
     finds training's neighbours again. When no rule reproduces them the predictor is kept and the gap reported."""
-    from dataclasses import replace as _replace
-
     leaves = np.flatnonzero(~mask)
     if not len(leaves):
         return pred
@@ -667,7 +665,8 @@ def _rule_reproducing_leaves(pred: ResidualPredictor, pos_sorted: np.ndarray, ma
     lv = torch.from_numpy(leaves)
     errors = {}
     for rule in dict.fromkeys([pred.config.ties, "grid", "position", "index"]):
-        cand = ResidualPredictor.from_arrays(_replace(pred.config, ties=rule), pred.state_arrays()).eval()
+        cand = pred if rule == pred.config.ties else \
+            ResidualPredictor.from_arrays(replace(pred.config, ties=rule), pred.state_arrays()).eval()
         near = torch.from_numpy(predictor_neighbours(pos_sorted, mask, cand.config))
         with torch.no_grad(), torch_threads(1):
             f, _ = cand.predict(pos_t, f_t, near, lv, o_t)

@@ -376,11 +376,11 @@ def checkpoint_path_for(out: str | os.PathLike) -> Path:
 def run_checkpointed(tr: TrainingRun, ckpt: Path | None, checkpoint_every: float, log: ProgressFn, detail,
                      hist_extra, finish: Callable[[], T], *, keep_checkpoint: bool = False,
                      stop_after: int | None = None) -> T:
-    """``run_until_done``, then ``finish()`` (writing the result; its value is returned), with ``tr.save_checkpoint(ckpt)`` every
-    ``checkpoint_every`` seconds (0: never) and on interrupt or error, in training or in ``finish``: the work is
-    kept, never a partial output. After success the checkpoint is removed unless ``keep_checkpoint``. ``ckpt``
-    None: no checkpoints at all. ``stop_after`` (tests) raises ``KeyboardInterrupt`` after that many steps of this
-    call."""
+    """``run_until_done``, then ``finish()`` (writing the result; its value is returned), with
+    ``tr.save_checkpoint(ckpt)`` every ``checkpoint_every`` seconds (0: never) and on interrupt or error, in training
+    or in ``finish``: the work is kept, never a partial output. After success the checkpoint is removed unless
+    ``keep_checkpoint``. ``ckpt`` None: no checkpoints at all. ``stop_after`` (tests) raises ``KeyboardInterrupt``
+    after that many steps of this call."""
     last_ckpt = time.perf_counter()
     steps = 0
 

@@ -41,9 +41,8 @@ def _split(positions, proxy_mask, ties: str = "position", unit: float | None = N
     if ties == "grid":
         if unit is None or not (np.isfinite(unit) and unit > 0):
             raise ProxycodecError(f"the grid tie rule needs a positive length unit, got {unit!r}")
-        if len(p):
-            origin = p[pidx].min(0) if len(pidx) else p.min(0)
-            p = np.round((p - origin) * (GRID_STEPS / float(unit)))
+        if len(pidx):  # no proxy: no leaf either (else the error above), nothing to measure
+            p = np.round((p - p[pidx].min(0)) * (GRID_STEPS / float(unit)))
     if ties in ("position", "grid") and len(pidx) > 1:
         q = p[pidx]
         pidx = pidx[np.lexsort((q[:, 2], q[:, 1], q[:, 0]))]  # stable: the same position keeps index order
@@ -54,9 +53,10 @@ def nearest_proxy(positions, proxy_mask, ties: str = "position", *, unit: float 
                   brute_force_pairs: int = BRUTE_FORCE_PAIRS) -> np.ndarray:
     """[M] int64: index (into ``positions``) of each anchor's nearest proxy; proxies map to themselves.
 
-    Distances are squared Euclidean, computed in float64 as ((a - b)^2).sum() on the given coordinates; ties go to
-    the first proxy in ``ties`` order (``TIES``). Encoder and decoder call this on the same stored positions with
-    the container's rule, so they always agree; with "position" a trainer's anchor order agrees with them too.
+    Distances are squared Euclidean, computed in float64 as ((a - b)^2).sum() on the given coordinates (under "grid":
+    on their lattice coordinates); ties go to the first proxy in ``ties`` order (``TIES``). Encoder and decoder call
+    this on the same stored positions with the container's rule, so they always agree; with "position" a trainer's
+    anchor order agrees with them too, and with "grid" also a trainer's frame.
     ``positions``: [M, 3] array-like (numpy; ``proxy.nearest_proxy`` also takes tensors). ``unit``: the lattice's
     length unit under "grid".
     """

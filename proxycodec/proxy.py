@@ -43,7 +43,8 @@ __all__ = [
     "default_cell_size", "select_proxies", "nearest_proxy", "nearest_proxies", "nearest_column", "PredictorConfig",
     "ResidualPredictor", "predictor_inputs", "predictor_geometry", "recon_loss", "offset_recon_loss", "TrainConfig",
     "TrainResult", "train_predictor", "proxies_per_cell", "PROXY_SELECTIONS", "check_proxy_selection", "RECON_LOSSES",
-    "PREDICTOR_KINDS", "predictor_neighbours", "ProxyLeafConfig", "ProxyLeafMLP", "predictor_from_json", "load_fitted_predictor",
+    "PREDICTOR_KINDS", "predictor_neighbours", "ProxyLeafConfig", "ProxyLeafMLP", "predictor_from_json",
+    "load_fitted_predictor",
 ]
 
 

@@ -779,6 +779,7 @@ def fit(data, out_ply: str | os.PathLike, config: FitConfig = FitConfig(), *, da
     log(f"fit: {len(data.train_indices)} training views, {tr.anchors.num_anchors} anchors "
         f"(voxel {tr.anchors.voxel_size:.4g}), setup {time.perf_counter() - t_setup:.1f} s; "
         f"iters {config.iters}, time budget {config.time_budget}")
+
     def finish() -> FitResult:
         res = tr.result()
         save_fitted(to_save(res) if to_save else res, out_ply)
