@@ -246,9 +246,10 @@ def parse_fit(r: dict) -> dict:
     return f
 
 
-def run_eval(R: Run, name: str, scene: Path, data: Path, res: str) -> dict:
+def run_eval(R: Run, name: str, scene: Path, data: Path, res: str, extra=()) -> dict:
     out = R.work / f"{name}_report"
-    r = R.cli(name, ["eval", scene, data, "-o", out, "--res", res] + (["--views", 1] if R.args.smoke else []), 600)
+    r = R.cli(name, ["eval", scene, data, "-o", out, "--res", res, *extra] + (["--views", 1] if R.args.smoke else []),
+              600)
     check(r)
     j = json.loads((out / "eval.json").read_text())
     per = {f"{d['xi']:g}": {"psnr": d["psnr"], "ssim": d["ssim"], "render_ms": round(d["seconds"] * 1e3, 2),
@@ -316,8 +317,35 @@ def stage_b(R: Run, rec: dict) -> None:
 
 
 def stage_d(R: Run, rec: dict) -> None:
-    fit_eval(R, rec, "d", "bonsai", 800, R.args.budget_bonsai, "0.25" if R.args.smoke else "0.25,0.5,1.0")
+    fit_eval(R, rec, "d", "bonsai", 800, R.args.budget_bonsai, "0.25" if R.args.smoke else LEGO_RES)
     rec["cpu"] += " (CPU at 400 px, the GPU at 4x the pixels)"
+
+
+def stage_g(R: Run, rec: dict) -> None:
+    """Plain 3DGS (`fit --explicit`) on bonsai at 800 px for stage d's training time on the same GPU, evaluated at
+    the same sizes; per size, stage d's PSNR minus this one's, and the 3DGS PLY's SPZ size."""
+    data, ply, d = R.data("bonsai"), R.work / "bonsai_3dgs.ply", R.res["stages"].get("d", {})
+    budget = (d.get("fit") or {}).get("budget_s") or R.args.budget_bonsai
+    f = fit(R, rec, "g_fit", data, ply, 800, budget, ["--explicit"])
+    rec["equal_time"] = f["budget_s"] == budget
+    rec["key"] = (f"3DGS {f['iterations']:,} it in {f['train_seconds']} s = **{f['it_per_s']} it/s**, "
+                  f"{f.get('gaussians', '?')} Gaussians" + ("" if rec["equal_time"] else f" (budget cut from {budget} s)"))
+    ev = rec["eval"] = run_eval(R, "g_eval", ply, data, "0.25" if R.args.smoke else LEGO_RES, ["--max-width", 800])
+    rec["key"] += "; " + eval_text(ev)
+    try:
+        from proxycodec.formats.inria_ply import read_inria_ply
+        from proxycodec.formats.spz import write_spz
+
+        rec["spz_bytes"] = write_spz(R.work / "bonsai_3dgs.spz", read_inria_ply(ply))
+        rec["key"] += f"; SPZ {rec['spz_bytes']:,} B"
+    except Exception as e:  # noqa: BLE001 - recorded, the comparison below still counts
+        rec["spz_error"] = f"{type(e).__name__}: {e}"
+    ours = (d.get("eval") or {}).get("per_resolution")
+    if ours:
+        diff = {k: round(ours[k]["psnr"] - v["psnr"], 3) for k, v in ev["per_resolution"].items() if k in ours}
+        rec["ours_minus_3dgs"] = diff
+        rec["cpu"] = (f"ours - 3DGS: mean {sum(diff.values()) / len(diff):+.2f} dB, min {min(diff.values()):+.2f} "
+                      f"(acceptance: >= 0 at every size, >= +3 on average)")
 
 
 def stage_c(R: Run, rec: dict) -> None:
@@ -512,7 +540,8 @@ STAGES = {"a": ("pytest -m cuda", stage_a, lambda a: 300),
           "c": ("lego encode, distillation, decode, stats, eval", stage_c, lambda a: 480),
           "d": ("bonsai fit 800 px + eval", stage_d, lambda a: a.budget_bonsai + 200),
           "e": ("3DGS fit, convert, encode", stage_e, lambda a: a.budget_explicit + 420),
-          "f": ("render, micro-benchmark", stage_f, lambda a: 150)}
+          "f": ("render, micro-benchmark", stage_f, lambda a: 150),
+          "g": ("bonsai plain 3DGS at d's budget + eval", stage_g, lambda a: a.budget_bonsai + 200)}
 
 
 def markdown(res: dict) -> str:
