@@ -664,19 +664,20 @@ def _rule_reproducing_leaves(pred: ResidualPredictor, pos_sorted: np.ndarray, ma
     pos_t, f_t, o_t = (torch.from_numpy(np.ascontiguousarray(x)) for x in (pos_sorted, feats, offs))
     lv = torch.from_numpy(leaves)
     errors = {}
+    state = pred.state_arrays()  # the check runs on the host, wherever ``pred`` lives
     for rule in dict.fromkeys([pred.config.ties, "grid", "position", "index"]):
-        cand = pred if rule == pred.config.ties else \
-            ResidualPredictor.from_arrays(replace(pred.config, ties=rule), pred.state_arrays()).eval()
+        cand = ResidualPredictor.from_arrays(replace(pred.config, ties=rule), state).eval()
         near = torch.from_numpy(predictor_neighbours(pos_sorted, mask, cand.config))
         with torch.no_grad(), torch_threads(1):
             f, _ = cand.predict(pos_t, f_t, near, lv, o_t)
         errors[rule] = float((f - f_t[lv]).abs().max())
         if errors[rule] <= LEAF_MATCH:
-            if rule != pred.config.ties:
-                say(f"the stage-2 predictor's tie rule {pred.config.ties!r} does not reproduce the scene's leaves "
-                    f"(max feature error {errors[pred.config.ties]:.3g}); {rule!r} does (max {errors[rule]:.2g}): "
-                    f"encoding with it")
-            return cand
+            if rule == pred.config.ties:
+                return pred
+            say(f"the stage-2 predictor's tie rule {pred.config.ties!r} does not reproduce the scene's leaves "
+                f"(max feature error {errors[pred.config.ties]:.3g}); {rule!r} does (max {errors[rule]:.2g}): "
+                f"encoding with it")
+            return cand.to(next(pred.parameters()).device)
     say(f"warning: the stage-2 predictor reproduces the scene's leaves under no tie rule (max feature error "
         + ", ".join(f"{r} {e:.3g}" for r, e in errors.items()) + "); the container decodes its own predictions")
     return pred
