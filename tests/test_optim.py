@@ -53,8 +53,8 @@ def test_matches_torch_adam(lr):
     ref = torch.optim.Adam(list(q.values()), lr=lr, betas=(0.9, 0.999), eps=1e-8)
     for it in range(1, 9):
         _grads(p, it)
-        for k in q:
-            q[k].grad = None if p[k].grad is None else p[k].grad.clone()
+        for k, t in q.items():
+            t.grad = None if p[k].grad is None else p[k].grad.clone()
         ours.step(lr)
         ref.step()
     for k in p:  # float32 rounding in another order: a few ulps of values that moved by up to 8 * lr
