@@ -478,8 +478,9 @@ class Trainer(TrainingRun):
             loss = loss + c.lambda_rate * bits / self.anchors.num_anchors
         self.optimise(loss, r, r.image.shape[1], r.image.shape[0], self.learning_rates(p))
         return {**self.step_stats(loss, r.image, gt), "xi": xi, "view": i, "gaussians": int(r.projected.count),
-                "recon": float(l_recon.detach()),
-                **({} if bits is None else {"bits_per_anchor": float(bits.detach()) / self.anchors.num_anchors})}
+                # 0-d tensors like loss and mse: reading them back would synchronise a GPU every step
+                "recon": l_recon.detach(),
+                **({} if bits is None else {"bits_per_anchor": bits.detach() / self.anchors.num_anchors})}
 
     def leaf_tables(self, cam: Camera, with_recon: bool = True, rounded: tuple | None = None
                     ) -> tuple[torch.Tensor | None, torch.Tensor | None, torch.Tensor]:
