@@ -37,16 +37,22 @@ class SceneRender(RenderResult):
     visible_anchor_index: torch.Tensor | None = None
 
 
+def scene_visible(scene: AnchorScene, decoder: GaussianDecoder, camera: Camera) -> torch.Tensor:
+    """Indices of the anchors of ``scene`` whose Gaussians can reach ``camera``'s frustum (at its render size)."""
+    return visible_anchors(scene.positions.detach(), scene.extent_radius().detach(), camera,
+                           decoder.config.near_plane())
+
+
 def decode_view(scene: AnchorScene, decoder: GaussianDecoder, camera: Camera, xi: float,
-                features: torch.Tensor | None = None,
-                offsets: torch.Tensor | None = None) -> tuple[NeuralGaussians, torch.Tensor]:
+                features: torch.Tensor | None = None, offsets: torch.Tensor | None = None,
+                visible: torch.Tensor | None = None) -> tuple[NeuralGaussians, torch.Tensor]:
     """Neural Gaussians of the anchors visible from ``camera`` (already at its render resolution).
 
-    ``features`` (``offsets``) override the scene's (stage 2 renders leaves with predicted ones). Returns the Gaussians
+    ``features`` (``offsets``) override the scene's (stage 2 renders leaves with predicted ones). ``visible``:
+    ``scene_visible(scene, decoder, camera)`` where the caller has it already. Returns the Gaussians
     (``anchor_index`` into the full scene) and the visible anchor indices.
     """
-    vis = visible_anchors(scene.positions.detach(), scene.extent_radius().detach(), camera,
-                          decoder.config.near_plane())
+    vis = scene_visible(scene, decoder, camera) if visible is None else visible
     feats = scene.features if features is None else features
     offs = scene.offsets if offsets is None else offsets
     _, _, center = camera.torch_params(scene.positions.device, scene.positions.dtype)
@@ -67,12 +73,14 @@ def render_scene(
     offsets: torch.Tensor | None = None,
     gate: GateConfig | None = None,
     size: tuple[int, int] | None = None,
+    visible: torch.Tensor | None = None,
 ) -> SceneRender:
     """Render ``scene`` from ``camera`` (given at its 100% reference size) at resolution ratio ``xi``: at
-    ``camera.scaled(xi)``'s size, or at ``size`` (width, height) where given (the embedding still sees ``xi``)."""
+    ``camera.scaled(xi)``'s size, or at ``size`` (width, height) where given (the embedding still sees ``xi``).
+    ``visible``: the anchors ``scene_visible`` gives for that camera, where the caller has them already."""
     xi = check_xi(xi)
     cam = camera.scaled(xi) if size is None else camera.sized(*size)
-    g, vis = decode_view(scene, decoder, cam, xi, features, offsets)
+    g, vis = decode_view(scene, decoder, cam, xi, features, offsets, visible)
     bg = torch.as_tensor(background, dtype=scene.positions.dtype, device=scene.positions.device)
     proj = project(g.means, g.quats, g.scales, g.opacities, g.colors, cam,
                    gate=decoder.config.gate if gate is None else gate, near=decoder.config.near_plane(), origin=g.origin,
@@ -154,7 +162,7 @@ class SceneModel:
         return ply_path, wpath
 
     @staticmethod
-    def load(ply_path: str | os.PathLike, weights_path: str | os.PathLike | None = None) -> "SceneModel":
+    def load(ply_path: str | os.PathLike, weights_path: str | os.PathLike | None = None) -> SceneModel:
         from .formats.container import read_container
         from .formats.scaffold_ply import read_scaffold_ply
         from .scene import scene_from_scaffold_ply

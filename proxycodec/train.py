@@ -32,8 +32,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from .camera import Camera
-from .decoder import DecoderConfig, GaussianDecoder, visible_anchors
+from .decoder import DecoderConfig, GaussianDecoder
 from .devices import as_device, generator
 from .entropy_fit import RateModel
 from .errors import ProxycodecError
@@ -42,7 +41,7 @@ from .loop import (
     ProgressFn, TargetImages, TrainingRun, check_run_length, check_xi_sampling, checkpoint_path_for, fmt_time,
     initial_points, knn_scale, photometric_loss, run_checkpointed,
 )
-from .model import SceneModel, render_scene, weights_path_for
+from .model import SceneModel, render_scene, scene_visible, weights_path_for
 from .netconfig import PredictorConfig
 from .optim import Adam, exp_lr
 from .proxy import (
@@ -466,9 +465,12 @@ class Trainer(TrainingRun):
             f_q, o_q, s_q, bits = self.rate(a.features, a.offsets, a.scalings, generator=gen)
             rounded = f_q, o_q
             scene = replace(scene, features=f_q, offsets=o_q, scalings=s_q)
-        feats, offs, l_recon = self.leaf_tables(cam.scaled(xi), with_recon=lam != 0.0, rounded=rounded)
+        # one frustum test for the leaf tables and the render: the leaves predicted are the ones drawn (the scene
+        # rendered, on its quantisation grids when rate-trained, is the one the decoder will see)
+        vis = scene_visible(scene, self.decoder, cam.scaled(xi))
+        feats, offs, l_recon = self.leaf_tables(vis, with_recon=lam != 0.0, rounded=rounded)
         r = render_scene(scene, self.decoder, cam, xi, background=self.bg, backend=c.backend,
-                         features=feats, offsets=offs)
+                         features=feats, offsets=offs, visible=vis)
         loss = photometric_loss(r.image, gt, c.lambda_dssim)
         if r.gaussians.count:
             loss = loss + c.lambda_volume * r.gaussians.scales.prod(dim=1).mean()
@@ -482,18 +484,18 @@ class Trainer(TrainingRun):
                 "recon": l_recon.detach(),
                 **({} if bits is None else {"bits_per_anchor": bits.detach() / self.anchors.num_anchors})}
 
-    def leaf_tables(self, cam: Camera, with_recon: bool = True, rounded: tuple | None = None
+    def leaf_tables(self, vis: torch.Tensor, with_recon: bool = True, rounded: tuple | None = None
                     ) -> tuple[torch.Tensor | None, torch.Tensor | None, torch.Tensor]:
-        """Stage 2: the feature (and, with ``predict_offsets``, offset) tables with the visible leaves' rows
-        predicted; and L_recon (0 without computing it when ``with_recon`` is False, i.e. its weight is 0: the
-        leaf sample is still drawn, so the random stream does not depend on the weight). ``rounded``: (features,
+        """Stage 2: the feature (and, with ``predict_offsets``, offset) tables with the rows of the leaves among
+        the visible anchors ``vis`` (``model.scene_visible``) predicted; and L_recon (0 without computing it when
+        ``with_recon`` is False, i.e. its weight is 0: the leaf sample is still drawn, so the random stream does
+        not depend on the weight). ``rounded``: (features,
         offsets) on their quantisation grids (rate training), rendered and fed to the predictor instead."""
         zero = torch.zeros((), device=self.device)
         if self.stage < 2 or self.predictor is None:
             return (None, None, zero) if rounded is None else (*rounded, zero)
         a = self.anchors
         po = self.cfg.predict_offsets
-        vis = visible_anchors(a.positions, a.scene().extent_radius().detach(), cam, self.decoder.config.near_plane())
         leaf_vis = vis[~self.proxy_mask[vis]]
         base_f, base_o = rounded if rounded is not None else (a.features, a.offsets)
         feats, offs = base_f, (base_o if po or rounded is not None else None)

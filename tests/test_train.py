@@ -386,9 +386,9 @@ class TestFit:
         orig = Trainer.leaf_tables
 
         def run(force):
-            def spy(self, cam, with_recon=True, rounded=None):
+            def spy(self, vis, with_recon=True, rounded=None):
                 calls.append(with_recon)
-                return orig(self, cam, True if force else with_recon, rounded)
+                return orig(self, vis, True if force else with_recon, rounded)
 
             monkeypatch.setattr(Trainer, "leaf_tables", spy)
             tr = Trainer(data, small_config(iters=20), "tiny")
@@ -519,3 +519,45 @@ def test_cli_fit_bad_dataset(tmp_path):
 
     r = CliRunner().invoke(cli, ["fit", str(tmp_path), "-o", str(tmp_path / "x.ply"), "--iters", "2"])
     assert r.exit_code == 2 and "not a dataset" in r.output
+
+
+def test_stage2_predicts_every_leaf_it_renders(data, monkeypatch):
+    """On the rate term's quantisation grids the anchors' extents move, and with them the frustum test: the leaves
+    whose rows are predicted are those of the render's own visibility, so no drawn leaf renders its stored feature
+    (what the container, which stores no leaf features, could never show)."""
+    import dataclasses
+
+    import proxycodec.train as train_mod
+    from proxycodec.train import Trainer
+
+    tr = Trainer(data, small_config(iters=20, lambda_rate=1e-4), "tiny")
+    while tr.stage < 2:
+        tr.train_step()
+    assert tr.rate is not None
+    rate = tr.rate.forward
+
+    def wider(*a, **kw):  # exaggerates what the grids do to the extents, so that the frustum test differs
+        f, o, s, bits = rate(*a, **kw)
+        return f, o, s + 2.0, bits
+
+    monkeypatch.setattr(tr.rate, "forward", wider)
+    # zoomed in 3x, each view sees part of the scene: the frustum test has anchors to tell apart
+    zoomed = type(tr.data.cameras)(dataclasses.replace(c, fx=3 * c.fx, fy=3 * c.fy) for c in tr.data.cameras)
+    tr.data = dataclasses.replace(tr.data, cameras=zoomed)
+    checked = []
+    render = train_mod.render_scene
+
+    def spy(scene, decoder, cam, xi, **kw):
+        r = render(scene, decoder, cam, xi, **kw)
+        vis = r.visible_anchor_index
+        drawn = vis[~tr.proxy_mask[vis]]
+        with torch.no_grad():
+            want, _ = tr.predictor.predict(tr.anchors.positions, scene.features, tr.nearest, drawn)
+        assert torch.equal(kw["features"][drawn], want)  # the same computation on the same rows
+        checked.append((len(drawn), len(vis), tr.anchors.num_anchors))
+        return r
+
+    monkeypatch.setattr(train_mod, "render_scene", spy)
+    for _ in range(4):
+        tr.train_step()
+    assert len(checked) == 4 and all(d > 0 for d, _, _ in checked)
