@@ -29,6 +29,10 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 DEFAULT_DATA = HERE.parent.parent / "shared" / "data" / "mipnerf360" / "bonsai"
+#: Operations that only make a new view of a tensor (or detach one): dispatched, but no kernel runs on a GPU.
+VIEWS = {"detach", "t", "view", "_unsafe_view", "slice", "select", "as_strided", "transpose", "expand", "unsqueeze",
+         "squeeze", "permute", "alias", "lift_fresh", "split", "split_with_sizes", "unbind", "narrow", "diagonal",
+         "_reshape_alias", "unfold", "numpy_T", "real", "view_as_real", "_to_copy_view"}
 #: Operations whose output size (or a host value) depends on the data: a host-device synchronisation on a GPU.
 SYNCING = {"nonzero", "masked_select", "unique", "_unique2", "item", "_local_scalar_dense", "is_nonzero",
            "masked_scatter", "repeat_interleave"}
@@ -56,10 +60,12 @@ def count_ops(step, n: int) -> dict:
     seconds = (time.perf_counter() - t) / n
     total = sum(by_op.values())
     return {"ops_per_step": round(total / n, 1),
+            "kernel_ops_per_step": round(sum(c for k, c in by_op.items() if k not in VIEWS) / n, 1),
             "syncing_per_step": round(sum(c for k, c in by_op.items() if k in SYNCING) / n, 1),
             "syncing": {k: round(c / n, 1) for k, c in sorted(by_op.items()) if k in SYNCING},
             "top_ops": {k: round(c / n, 1) for k, c in by_op.most_common(12)},
             "top_lines": {k: round(c / n, 1) for k, c in by_line.most_common(15)},
+            "by_op": {k: round(c / n, 1) for k, c in sorted(by_op.items())},
             "seconds_per_step_counting": round(seconds, 4)}
 
 
@@ -103,10 +109,12 @@ def main(argv=None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     (out / "step_ops.json.tmp").write_text(json.dumps(res, indent=2))
     (out / "step_ops.json.tmp").replace(out / "step_ops.json")
-    print("| case | ops / step | syncing / step | top source lines (ops / step) |\n|---|---:|---:|---|")
+    print("| case | ops / step | of them not views | syncing / step | top source lines (ops / step) |\n"
+          "|---|---:|---:|---:|---|")
     for name, c in res["cases"].items():
         lines = "; ".join(f"{k} {v:g}" for k, v in list(c["top_lines"].items())[:5])
-        print(f"| {name} | {c['ops_per_step']:,.0f} | {c['syncing_per_step']:g} | {lines} |")
+        print(f"| {name} | {c['ops_per_step']:,.0f} | {c['kernel_ops_per_step']:,.0f} | {c['syncing_per_step']:g} | "
+              f"{lines} |")
     print(f"wrote {out / 'step_ops.json'}; peak RSS {res['peak_rss_mb']} MB")
     return 0
 
