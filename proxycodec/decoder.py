@@ -17,6 +17,7 @@ after the FiLM embedding). The defaults are the decoder above.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -48,12 +49,19 @@ class NeuralGaussians:
         return self.means + self.origin
 
 
+@functools.lru_cache(maxsize=64)
+def _frequencies(n_freqs: int, device: torch.device, dtype: torch.dtype) -> torch.Tensor:
+    """2^k pi for k < n_freqs, made once per device and dtype (three kernel launches a call on a GPU otherwise); a
+    normal tensor even when first asked for under ``torch.inference_mode`` (autograd may save it later)."""
+    with torch.inference_mode(False), torch.no_grad():
+        return (2.0 ** torch.arange(n_freqs, device=device, dtype=dtype)) * math.pi
+
+
 def positional_encoding(x: torch.Tensor, n_freqs: int) -> torch.Tensor:
     """NeRF-style [x, sin(2^k pi x), cos(2^k pi x)] for k < n_freqs."""
     if n_freqs == 0:
         return x
-    freqs = (2.0 ** torch.arange(n_freqs, device=x.device, dtype=x.dtype)) * math.pi
-    xf = x[..., None] * freqs  # [..., D, L]
+    xf = x[..., None] * _frequencies(n_freqs, x.device, x.dtype)  # [..., D, L]
     return torch.cat([x, torch.sin(xf).flatten(-2), torch.cos(xf).flatten(-2)], -1)
 
 

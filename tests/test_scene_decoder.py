@@ -1,5 +1,6 @@
 """Anchor scene validation, the neural Gaussian decoder, frustum culling and model persistence."""
 
+import math
 import subprocess
 import sys
 from dataclasses import replace
@@ -216,3 +217,22 @@ def test_the_sample_decoder_survives_the_container_and_its_stripes_are_steps_off
         assert np.minimum(np.abs(on - lo), np.abs(on - hi)).min() > 0.05, j
         assert not ((on > lo) & (on < hi)).any(), j
         assert (on >= hi).any() and (on <= lo).any(), j  # stripes on and off
+
+
+def test_positional_encoding_frequencies_are_cached_safely():
+    """The cached 2^k pi table gives NeRF's encoding, and a table first made under inference mode still serves
+    autograd (an inference tensor could not be saved for backward)."""
+    from proxycodec.decoder import _frequencies, positional_encoding
+
+    _frequencies.cache_clear()
+    x = torch.tensor([[0.25, -0.5]], dtype=torch.float64)
+    with torch.inference_mode():
+        positional_encoding(x, 3)
+    k = torch.arange(3, dtype=torch.float64)
+    want = torch.cat([x, torch.sin(x[..., None] * 2.0**k * math.pi).flatten(-2),
+                      torch.cos(x[..., None] * 2.0**k * math.pi).flatten(-2)], -1)
+    xg = x.clone().requires_grad_(True)
+    got = positional_encoding(xg, 3)
+    assert torch.equal(got.detach(), want)
+    got.sum().backward()
+    assert torch.isfinite(xg.grad).all() and xg.grad.abs().sum() > 0
