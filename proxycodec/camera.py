@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from .devices import upload
 from .errors import ProxycodecError
 
 if TYPE_CHECKING:
@@ -125,9 +126,9 @@ class Camera:
 
         if dtype is None:
             dtype = torch.float32
-        R = torch.as_tensor(self.rotation, dtype=dtype, device=device)
-        t = torch.as_tensor(self.translation, dtype=dtype, device=device)
-        c = torch.as_tensor(self.center, dtype=dtype, device=device)
+        R = upload(self.rotation, device, dtype)
+        t = upload(self.translation, device, dtype)
+        c = upload(self.center, device, dtype)
         return R, t, c
 
     # ------------------------------------------------------------------ construction helpers

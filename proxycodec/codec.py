@@ -678,7 +678,7 @@ def _rule_reproducing_leaves(pred: ResidualPredictor, pos_sorted: np.ndarray, ma
                 f"(max feature error {errors[pred.config.ties]:.3g}); {rule!r} does (max {errors[rule]:.2g}): "
                 f"encoding with it")
             return cand.to(next(pred.parameters()).device)
-    say(f"warning: the stage-2 predictor reproduces the scene's leaves under no tie rule (max feature error "
+    say("warning: the stage-2 predictor reproduces the scene's leaves under no tie rule (max feature error "
         + ", ".join(f"{r} {e:.3g}" for r, e in errors.items()) + "); the container decodes its own predictions")
     return pred
 

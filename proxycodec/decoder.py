@@ -26,6 +26,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from .devices import upload
 from .netconfig import DecoderConfig  # defined torch-free (proxycodec.lite reads it too)
 from .weights import load_state_arrays, state_arrays
 
@@ -95,7 +96,7 @@ class GaussianDecoder(nn.Module):
         cfg = self.config
         if cfg.embedding == "none" or features.shape[0] == 0:
             return features
-        c = torch.as_tensor(cfg.scene_center, dtype=positions.dtype, device=positions.device)
+        c = upload(cfg.scene_center, positions.device, positions.dtype)
         xn = ((positions - c) / cfg.scene_radius).clamp(-4.0, 4.0)
         lo, hi = cfg.film_xi_range
         s = torch.full_like(positions[:, :1], math.log2(min(max(float(xi), lo), hi)) / 4.0)
@@ -216,9 +217,8 @@ def visible_anchors(positions: torch.Tensor, radius: torch.Tensor, camera, near:
         R, t, _ = camera.torch_params(positions.device, positions.dtype)
         p = positions @ R.T + t
         W, H, fx, fy, cx, cy = camera.width, camera.height, camera.fx, camera.fy, camera.cx, camera.cy
-        planes = torch.tensor(  # inward normals of the four side planes through the camera centre
-            [[fx, 0.0, cx], [-fx, 0.0, W - cx], [0.0, fy, cy], [0.0, -fy, H - cy]], dtype=p.dtype, device=p.device
-        )
+        planes = upload(  # inward normals of the four side planes through the camera centre
+            [[fx, 0.0, cx], [-fx, 0.0, W - cx], [0.0, fy, cy], [0.0, -fy, H - cy]], p.device, p.dtype)
         planes = planes / planes.norm(dim=1, keepdim=True)
         inside = (p @ planes.T >= -radius[:, None]).all(1) & (p[:, 2] + radius > near)
         return inside.nonzero().squeeze(1)

@@ -94,3 +94,17 @@ def generator(device: torch.device | str | None, seed: int) -> torch.Generator:
     d = as_device(device)
     g = torch.Generator(device=d) if d.type != CPU else torch.Generator()
     return g.manual_seed(int(seed))
+
+
+def upload(data, device, dtype: torch.dtype | None = None) -> torch.Tensor:
+    """``data`` (a host array, list, number or tensor) as a tensor on ``device``, in ``dtype`` where given.
+
+    The host-to-device copy is queued without waiting (``non_blocking``): torch's default copy first waits for every
+    kernel queued before it, a full synchronisation of the host with the GPU for a few bytes, and a training step
+    uploads a dozen such small tables (camera pose, frustum planes, resize weights, the leaf sample). From pageable
+    memory CUDA stages the bytes before the call returns, so ``data`` may change or go right after. The values are
+    those of a blocking copy. On the CPU nothing is copied: as with ``torch.as_tensor``, the tensor may share
+    ``data``'s memory."""
+    import torch
+
+    return torch.as_tensor(data, dtype=dtype).to(device, non_blocking=True)

@@ -46,7 +46,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .devices import as_device
+from .devices import as_device, upload
 from .errors import ProxycodecError
 from .formats.container import read_container
 from .formats.inria_ply import GaussianPly, rgb_to_sh_dc, write_inria_ply
@@ -121,7 +121,7 @@ def eval_sh(degree: int, sh: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
 
 def sh_colors(sh: torch.Tensor, means: torch.Tensor, cam_center, degree: int) -> torch.Tensor:
     """Per-Gaussian RGB seen from ``cam_center`` (world): ``max(eval_sh(dir) + 0.5, 0)`` as 3DGS computes it."""
-    c = torch.as_tensor(np.asarray(cam_center, dtype=np.float64), dtype=means.dtype, device=means.device)
+    c = upload(np.asarray(cam_center, dtype=np.float64), means.device, means.dtype)
     d = means - c
     d = d / d.norm(dim=1, keepdim=True).clamp_min(1e-12)
     return (eval_sh(degree, sh, d) + 0.5).clamp_min(0.0)
@@ -228,7 +228,7 @@ def densify_and_prune(params: dict[str, torch.Tensor], grads: torch.Tensor, *, g
     ns = int(si.numel())
     if ns:
         s = torch.exp(p["scales"][si]).repeat(2, 1)  # [2 ns, 3] (3DGS's repeat(N, 1): all parents, twice)
-        samples = torch.from_numpy(rng.standard_normal((2 * ns, 3))).to(device=s.device, dtype=s.dtype) * s
+        samples = upload(rng.standard_normal((2 * ns, 3)), s.device, s.dtype) * s
         R = quat_to_rotmat(p["quats"][si]).repeat(2, 1, 1)
         child_means = (R @ samples[:, :, None]).squeeze(-1) + p["means"][si].repeat(2, 1)
         for k, v in p.items():

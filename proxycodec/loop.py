@@ -24,7 +24,7 @@ from typing import TypeVar
 import numpy as np
 import torch
 
-from .devices import CPU, as_device
+from .devices import CPU, as_device, upload
 from .errors import ProxycodecError
 from .formats.container import write_container
 from .metrics import dssim
@@ -171,8 +171,8 @@ def resize_torch(rgb: torch.Tensor, width: int, height: int) -> torch.Tensor:
     h0, w0 = rgb.shape[:2]
     if (w0, h0) == (width, height):
         return rgb.float().contiguous()
-    wy = torch.from_numpy(resize_weights(h0, height)).to(device=rgb.device, dtype=torch.float32)
-    wx = torch.from_numpy(resize_weights(w0, width)).to(device=rgb.device, dtype=torch.float32)
+    wy = upload(resize_weights(h0, height), rgb.device, torch.float32)
+    wx = upload(resize_weights(w0, width), rgb.device, torch.float32)
     out = torch.einsum("yh,hwc,xw->yxc", wy, rgb.float(), wx)
     return out if (width <= w0 and height <= h0) else out.clamp(0.0, 1.0)
 
@@ -187,7 +187,7 @@ def photometric_loss(img: torch.Tensor, gt: torch.Tensor, lambda_dssim: float) -
 def ndc_grad_norm(grad: torch.Tensor, width: int, height: int) -> torch.Tensor:
     """[N] float64 |d loss / d mean2D| in 3DGS's NDC-like units (d/d(ndc) = d/d(pixel) * size / 2), which its
     densification thresholds (0.0002) are stated in."""
-    return (grad.double() * grad.new_tensor([0.5 * width, 0.5 * height], dtype=torch.float64)).norm(dim=1)
+    return (grad.double() * upload([0.5 * width, 0.5 * height], grad.device, torch.float64)).norm(dim=1)
 
 
 class TrainingRun:

@@ -30,7 +30,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from .devices import module_device
+from .devices import module_device, upload
 from .decoder import positional_encoding
 from . import nearest as _nearest
 from .errors import ProxycodecError
@@ -407,7 +407,7 @@ class ProxyLeafMLP(nn.Module):
 
     def _pe(self, p: torch.Tensor) -> torch.Tensor:
         cfg = self.config
-        c = torch.as_tensor(cfg.scene_center, dtype=p.dtype, device=p.device)
+        c = upload(cfg.scene_center, p.device, p.dtype)
         return positional_encoding(((p - c) / cfg.scene_radius).clamp(-4.0, 4.0), cfg.pe_pos_freqs)
 
     def geometry(self, leaf_positions: torch.Tensor, proxy_positions: torch.Tensor) -> torch.Tensor:

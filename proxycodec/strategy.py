@@ -13,7 +13,7 @@ import math
 import numpy as np
 import torch
 
-from .devices import as_device
+from .devices import as_device, upload
 from .loop import ndc_grad_norm
 
 __all__ = ["ScaffoldStrategy"]
@@ -141,7 +141,7 @@ class ScaffoldStrategy:
         for i in range(c.update_depth):
             threshold = c.grad_threshold * ((c.update_hierarchy_factor // 2) ** i)
             cand = (grads >= threshold) & offset_mask
-            rand = torch.from_numpy(rng.random(cand.shape[0]) > 0.5 ** (i + 1)).to(cand.device)
+            rand = upload(rng.random(cand.shape[0]) > 0.5 ** (i + 1), cand.device)
             cand = cand & rand
             inc = a.num_anchors * K - init_len
             if inc == 0 and i > 0:

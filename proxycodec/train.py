@@ -33,7 +33,7 @@ import numpy as np
 import torch
 
 from .decoder import DecoderConfig, GaussianDecoder
-from .devices import as_device, generator
+from .devices import as_device, generator, upload
 from .entropy_fit import RateModel
 from .errors import ProxycodecError
 from .formats.container import read_container
@@ -510,7 +510,7 @@ class Trainer(TrainingRun):
         n = max(1, math.ceil(self.cfg.leaf_sample * L)) if L else 0
         if n == 0:
             return feats, offs, zero
-        sel = torch.from_numpy(self.rng.choice(L, n, replace=False)).long().to(self.device)
+        sel = upload(self.rng.choice(L, n, replace=False).astype(np.int64), self.device)
         if not with_recon:
             return feats, offs, zero
         pred_s, pred_so = self.predictor.predict(a.positions, a.features, self.nearest, self.leaves[sel],

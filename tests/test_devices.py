@@ -547,3 +547,20 @@ def test_no_hard_coded_device():
         if rel not in ALLOWED:
             bad += hard_coded_devices(path.read_text(encoding="utf-8"), rel)
     assert not bad, "devices named outside proxycodec/devices.py:\n" + "\n".join(bad)
+
+
+def test_upload_gives_the_values_of_a_blocking_copy():
+    """``devices.upload``: the dtype asked for, the values torch.as_tensor gives, on the device asked for."""
+    from proxycodec.devices import upload
+
+    a = np.array([[0.1, 2.0], [3.0, -4.5]])
+    t = upload(a, torch.device("cpu"), torch.float32)
+    assert t.dtype == torch.float32 and t.device.type == "cpu"
+    assert torch.equal(t, torch.as_tensor(a, dtype=torch.float32))
+    assert torch.equal(upload([1, 2, 3], torch.device("cpu")), torch.tensor([1, 2, 3]))
+    m = upload(np.array([True, False]), torch.device("cpu"))
+    assert m.dtype == torch.bool and m.tolist() == [True, False]
+    if torch.cuda.is_available():
+        g = upload(a, torch.device("cuda"), torch.float64)
+        a[0, 0] = 99.0  # staged before the call returned
+        assert g.cpu()[0, 0].item() == 0.1

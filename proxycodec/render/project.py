@@ -14,6 +14,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from ..devices import upload
+
 if TYPE_CHECKING:
     import torch
 
@@ -131,9 +133,9 @@ def project_gaussians(
     dev, dt = means.device, means.dtype
     W, H = camera.width, camera.height
     fx, fy, cx, cy = camera.fx, camera.fy, camera.cx, camera.cy
-    R = torch.as_tensor(camera.rotation, dtype=dt, device=dev)
+    R = upload(camera.rotation, dev, dt)
     # c - origin in float64 where the means lie (no read-back of a device origin), then in the means' precision
-    shift64 = torch.as_tensor(np.asarray(camera.center, dtype=np.float64), device=dev)
+    shift64 = upload(np.asarray(camera.center, dtype=np.float64), dev)
     if origin is not None:
         shift64 = shift64 - torch.as_tensor(origin).detach().to(device=dev, dtype=torch.float64)
     shift_t = shift64.to(dt)
