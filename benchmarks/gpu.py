@@ -57,6 +57,14 @@ CPU = {
     "raster": {"ms": 196, "source": 'SPEC.md section 2 ("Rasterizer"): numba cpu backend, 100k Gaussians at '
                "400 px, forward + backward"},
 }
+# Earlier GPU runs the same stage is compared with (benchmarks/README.md, "GPU runs"): whether a change to the step
+# (fewer launches and synchronisations since commit 5f76b9c) shows on the device.
+GPU_BEFORE = {
+    "bonsai_fit": {"iterations": 2232, "seconds": 150, "gpu": "NVIDIA H100 80GB HBM3", "source": "stage d at commit "
+                   "5f76b9c: 14.88 it/s (stage 1 ~25, stage 2 ~14.5), 2,780 operations per stage-2 step"},
+    "bonsai_3dgs": {"iterations": 10090, "seconds": 150, "gpu": "NVIDIA H100 80GB HBM3",
+                    "source": "stage g at commit 5f76b9c: 67.27 it/s"},
+}
 DONE = re.compile(r"done: (\d+) iterations in ([\d:]+)")
 PROG = re.compile(r"it\s+(\d+)/(\S+)\s+loss\s+([-\d.naif]+)\s+psnr\s+([-\d.naif]+).*?([\d:]+) elapsed")
 DISTILL_DONE = re.compile(r"distill: (\d+) iterations in ([\d:]+) \(([\d.]+) s")
@@ -119,7 +127,7 @@ class Run:
         self.logs = self.work / "logs"  # packed into OUT/logs.tar.gz: the device tool returns at most 8 files
         for d in (self.out, self.logs):
             d.mkdir(parents=True, exist_ok=True)
-        self.res = {"machine": machine_facts(args), "args": vars(args), "cpu_reference": CPU, "stages": {}}
+        self.res = {"machine": machine_facts(args), "args": vars(args), "cpu_reference": CPU, "gpu_before": GPU_BEFORE, "stages": {}}
 
     def say(self, msg: str) -> None:
         print(f"[gpu.py {time.monotonic() - self.t0:5.0f} s] {msg}", file=sys.stderr, flush=True)
@@ -324,7 +332,17 @@ def stage_b(R: Run, rec: dict) -> None:
 
 def stage_d(R: Run, rec: dict) -> None:
     fit_eval(R, rec, "d", "bonsai", 800, R.args.budget_bonsai, "0.25" if R.args.smoke else LEGO_RES)
-    rec["cpu"] += " (CPU at 400 px, the GPU at 4x the pixels)"
+    rec["cpu"] += " (CPU at 400 px, the GPU at 4x the pixels)" + before_text(R, rec, "bonsai_fit")
+
+
+def before_text(R: Run, rec: dict, key: str) -> str:
+    """The stage's it/s against the earlier GPU run of ``GPU_BEFORE[key]`` (noted as another GPU where it was)."""
+    b = GPU_BEFORE[key]
+    x = rec["fit"]["it_per_s"] / (b["iterations"] / b["seconds"])
+    rec["vs_gpu_before"] = {"before_it_per_s": round(b["iterations"] / b["seconds"], 2), "ratio": round(x, 2),
+                            "same_gpu": R.res["machine"].get("gpu") == b["gpu"], "source": b["source"]}
+    return f"; {x:.2f}x the {b['gpu']} run at 5f76b9c" + ("" if rec["vs_gpu_before"]["same_gpu"] else
+                                                          " (another GPU: not comparable)")
 
 
 def stage_g(R: Run, rec: dict) -> None:
@@ -334,6 +352,7 @@ def stage_g(R: Run, rec: dict) -> None:
     budget = (d.get("fit") or {}).get("budget_s") or R.args.budget_bonsai
     f = fit(R, rec, "g_fit", data, ply, 800, budget, ["--explicit"])
     rec["equal_time"] = f["budget_s"] == budget
+    rec["cpu"] = before_text(R, rec, "bonsai_3dgs").lstrip("; ")
     rec["key"] = (f"3DGS {f['iterations']:,} it in {f['train_seconds']} s = **{f['it_per_s']} it/s**, "
                   f"{f.get('gaussians', '?')} Gaussians" + ("" if rec["equal_time"] else f" (budget cut from {budget} s)"))
     ev = rec["eval"] = run_eval(R, "g_eval", ply, data, "0.25" if R.args.smoke else LEGO_RES, ["--max-width", 800])
@@ -350,7 +369,7 @@ def stage_g(R: Run, rec: dict) -> None:
     if ours:
         diff = {k: round(ours[k]["psnr"] - v["psnr"], 3) for k, v in ev["per_resolution"].items() if k in ours}
         rec["ours_minus_3dgs"] = diff
-        rec["cpu"] = (f"ours - 3DGS: mean {sum(diff.values()) / len(diff):+.2f} dB, min {min(diff.values()):+.2f} "
+        rec["cpu"] += (f"; ours - 3DGS: mean {sum(diff.values()) / len(diff):+.2f} dB, min {min(diff.values()):+.2f} "
                       f"(acceptance: >= 0 at every size, >= +3 on average)")
 
 
