@@ -147,11 +147,10 @@ def project_gaussians(
     z = p_cam[:, 2]
     with torch.no_grad():
         keep = (z > near) & (z < far) & (opacities >= ALPHA_MIN) & torch.isfinite(p_cam).all(-1)
-        idx = keep.nonzero().squeeze(1) if not bool(keep.all()) else None
-    if idx is not None:
-        p_cam, z, quats, scales, opacities, colors = (t[idx] for t in (p_cam, z, quats, scales, opacities, colors))
-    else:
-        idx = torch.arange(means.shape[0], device=dev)
+        # one data-dependent size (a GPU synchronisation), also when every Gaussian is kept: asking first whether
+        # all are would be a second
+        idx = keep.nonzero().squeeze(1)
+    p_cam, z, quats, scales, opacities, colors = (t[idx] for t in (p_cam, z, quats, scales, opacities, colors))
 
     # EWA: Sigma2D = J W Sigma W^T J^T, with the tangent-plane coordinates clamped as gsplat does so that Gaussians
     # far outside the view (or straddling the near plane) do not produce huge Jacobians.
