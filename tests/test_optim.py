@@ -60,3 +60,27 @@ def test_matches_torch_adam(lr):
     for k in p:  # float32 rounding in another order: a few ulps of values that moved by up to 8 * lr
         np.testing.assert_allclose(p[k].detach().numpy(), q[k].detach().numpy(), rtol=2e-6, atol=1e-6, err_msg=k)
         assert not torch.equal(p[k], _params(1)[k]) or k == "frozen"
+
+
+def test_step_dispatches_the_same_operations_for_any_number_of_tensors():
+    """The foreach step's operation count (each a kernel launch on a GPU) does not grow with the tensors stepped."""
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    class Count(TorchDispatchMode):
+        n = 0
+
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            Count.n += 1
+            return func(*args, **(kwargs or {}))
+
+    counts = []
+    for k in (2, 12):
+        params = {f"p{i}": torch.randn(5, 3, requires_grad=True) for i in range(k)}
+        opt = Adam(params)
+        for p in params.values():
+            p.grad = torch.ones_like(p)
+        Count.n = 0
+        with Count():
+            opt.step(1e-3)
+        counts.append(Count.n)
+    assert counts[0] == counts[1] <= 10, counts
