@@ -489,8 +489,8 @@ class Trainer(TrainingRun):
         """Stage 2: the feature (and, with ``predict_offsets``, offset) tables with the rows of the leaves among
         the visible anchors ``vis`` (``model.scene_visible``) predicted; and L_recon (0 without computing it when
         ``with_recon`` is False, i.e. its weight is 0: the leaf sample is still drawn, so the random stream does
-        not depend on the weight). ``rounded``: (features,
-        offsets) on their quantisation grids (rate training), rendered and fed to the predictor instead."""
+        not depend on the weight). ``rounded``: (features, offsets) on their quantisation grids (rate training),
+        rendered and fed to the predictor instead."""
         zero = torch.zeros((), device=self.device)
         if self.stage < 2 or self.predictor is None:
             return (None, None, zero) if rounded is None else (*rounded, zero)
