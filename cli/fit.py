@@ -93,7 +93,10 @@ _no_undistort_option = click.option(
             help="Coverage gate slope kappa (training and rendering; stored with the decoder).")
 @fit_option("--gate-eta", type=float, show_default=True,
             help="Coverage gate threshold eta in pixels^2 (training and rendering; stored with the decoder).")
-@fit_option("--voxel-size", type=float, show_default=True, help="Anchor voxel size; <= 0: scene extent / 128.")
+@fit_option("--voxel-size", type=float, show_default=True, help="Anchor voxel size; <= 0: chosen by --voxel-rule.")
+@fit_option("--voxel-rule", type=click.Choice(["extent", "spacing"]), show_default=True,
+            help="Automatic voxel: the scene's extent / 128, or the SfM points' median nearest-neighbour spacing "
+                 "(Scaffold-GS's; about one anchor per point). Without SfM points: extent.")
 @fit_option("--max-anchors", type=click.IntRange(min=1),
             help="Stop growing anchors at this many [default: no cap; the scene decides, as in Scaffold-GS].")
 @click.option("--init-points", type=int, default=None,
@@ -120,7 +123,7 @@ def fit(dataset, out, iters, time_budget, max_width, seed, no_gate, embedding, f
         film_hidden, stats_min_xi, no_proxies, proxy_ratio, proxy_selection, predictor_hidden, predictor_blocks,
         predictor_warmup, predictor_context, predict_offsets, lambda_rate, quant_cells, stage2_start, recon_loss,
         lambda_recon, predictor_kind,
-        gate_kappa, gate_eta, voxel_size, max_anchors, init_points, images, test_every, no_undistort, resume, checkpoint_every,
+        gate_kappa, gate_eta, voxel_size, voxel_rule, max_anchors, init_points, images, test_every, no_undistort, resume, checkpoint_every,
         keep_checkpoint, backend, explicit, sh_degree, max_gaussians) -> None:
     """Train an anchor scene on DATASET's photos (a Blender/NeRF-Synthetic or COLMAP folder, detected by its files).
 
@@ -149,7 +152,7 @@ def fit(dataset, out, iters, time_budget, max_width, seed, no_gate, embedding, f
             raise click.BadParameter(f"expected a number or 'paper', got {lambda_recon!r}",
                                      param_hint="--lambda-recon") from None
     cfg = FitConfig(seed=seed, max_width=max_width, gate=not no_gate, embedding=embedding, fixed_res=fixed_res,
-                    proxies=not no_proxies, voxel_size=voxel_size, max_anchors=max_anchors, checkpoint_every=checkpoint_every, backend=backend,
+                    proxies=not no_proxies, voxel_size=voxel_size, voxel_rule=voxel_rule, max_anchors=max_anchors, checkpoint_every=checkpoint_every, backend=backend,
                     recon_loss=recon_loss, lambda_recon_fixed=lambda_recon_fixed, predictor=predictor_kind,
                     gate_kappa=gate_kappa, gate_eta=gate_eta, proxy_ratio=proxy_ratio, proxy_selection=proxy_selection,
                     predictor_hidden=predictor_hidden, predictor_blocks=predictor_blocks,

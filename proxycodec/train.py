@@ -71,6 +71,9 @@ FIT_KIND = "proxycodec.fit"
 
 
 # ================================================================================================ configuration
+VOXEL_RULES = ("extent", "spacing")
+
+
 @dataclass(frozen=True)
 class FitConfig:
     """Everything that determines a training run. Fractions are of the whole run (iterations or time budget)."""
@@ -102,10 +105,13 @@ class FitConfig:
     film_hidden: int = 64  # width of the FiLM MLP's hidden layer
     proxies: bool = True  # stage 2 (proxy anchors + residual predictor); False: Scaffold-GS only
     # initialisation
-    voxel_size: float = 0.0  # <= 0: auto = extent / voxel_divisions
+    voxel_size: float = 0.0  # > 0: this size; <= 0: chosen by ``voxel_rule``
+    # [D] "extent": the bounds' extent / voxel_divisions. "spacing": Scaffold-GS's automatic voxel, the median
+    # distance between SfM points and their nearest neighbour (about one anchor per point: the scene decides);
+    # without SfM points (Blender's random init) "spacing" falls back to "extent". SPEC.md section 5.
+    voxel_rule: str = "extent"
     voxel_divisions: int = 128
     init_points: int = 5_000  # random points in the bounds when the dataset has no SfM points (Blender)
-    max_init_anchors: int = 40_000  # voxelised SfM points beyond this are subsampled
     # loss
     lambda_dssim: float = 0.2
     lambda_volume: float = 0.01
@@ -218,6 +224,8 @@ class FitConfig:
             raise ProxycodecError(f"learning-rate warm-up must be a fraction of the run in [0, 1), got {self.lr_warmup}")
         if self.max_anchors is not None and self.max_anchors < 1:
             raise ProxycodecError(f"the anchor cap must be >= 1, got {self.max_anchors}")
+        if self.voxel_rule not in VOXEL_RULES:
+            raise ProxycodecError(f"voxel rule {self.voxel_rule!r}: must be one of {', '.join(VOXEL_RULES)}")
         if self.predictor_warmup < 0:
             raise ProxycodecError(f"predictor warm-up must be >= 0 iterations, got {self.predictor_warmup}")
         if self.recon_loss not in RECON_LOSSES:
@@ -322,13 +330,38 @@ def voxelise(points: np.ndarray, voxel: float) -> np.ndarray:
     return cells.astype(np.float64) * voxel
 
 
+def point_spacing(points: np.ndarray) -> float:
+    """The median distance from each point to its nearest other point (Scaffold-GS's automatic voxel size); 0 when
+    fewer than two distinct points."""
+    from scipy.spatial import cKDTree
+
+    pts = np.unique(np.asarray(points, dtype=np.float64), axis=0)
+    if len(pts) < 2:
+        return 0.0
+    d, _ = cKDTree(pts).query(pts, k=2)
+    return float(np.median(d[:, 1]))
+
+
+def initial_voxel(pts: np.ndarray, extent: float, cfg: FitConfig, has_sfm: bool) -> float:
+    """The anchor voxel: ``cfg.voxel_size`` if given, else by ``cfg.voxel_rule`` (see ``FitConfig``)."""
+    if cfg.voxel_size > 0:
+        return float(cfg.voxel_size)
+    if cfg.voxel_rule == "spacing" and has_sfm:
+        spacing = point_spacing(pts)
+        if spacing > 0 and math.isfinite(spacing):
+            return spacing
+    return extent / cfg.voxel_divisions
+
+
 def initial_anchors(data, cfg: FitConfig, rng: np.random.Generator) -> tuple[np.ndarray, float, np.ndarray, float]:
-    """-> (anchor positions [M, 3], voxel size, scene centre [3], scene radius) from the dataset."""
+    """-> (anchor positions [M, 3], voxel size, scene centre [3], scene radius) from the dataset. With
+    ``cfg.max_anchors``, a larger voxelised set is subsampled to it (at random, seeded)."""
     pts, _, bounds, extent = initial_points(data, cfg.init_points, rng, "anchors")
-    voxel = cfg.voxel_size if cfg.voxel_size > 0 else extent / cfg.voxel_divisions
+    has_sfm = data.points is not None and len(data.points) >= 8
+    voxel = initial_voxel(pts, extent, cfg, has_sfm)
     anchors = voxelise(pts, voxel)
-    if len(anchors) > cfg.max_init_anchors:
-        anchors = anchors[np.sort(rng.choice(len(anchors), cfg.max_init_anchors, replace=False))]
+    if cfg.max_anchors is not None and len(anchors) > cfg.max_anchors:
+        anchors = anchors[np.sort(rng.choice(len(anchors), cfg.max_anchors, replace=False))]
     if len(anchors) == 0:
         raise ProxycodecError("no initial anchors")
     center = 0.5 * (bounds[0] + bounds[1])

@@ -491,6 +491,41 @@ class TestFit:
             FitConfig(max_anchors=0)
 
 
+    def test_initial_voxel_rules(self):
+        from types import SimpleNamespace
+
+        from proxycodec.errors import ProxycodecError
+        from proxycodec.train import FitConfig, initial_anchors
+
+        # SfM points on a 0.05 lattice (6 x 5 x 4 cells), each seen twice with a small jitter, and one far point
+        g = np.stack(np.meshgrid(np.arange(6), np.arange(5), np.arange(4), indexing="ij"), -1).reshape(-1, 3) * 0.05
+        rng = np.random.default_rng(0)
+        pts = np.concatenate([g, g + rng.uniform(-0.002, 0.002, g.shape), [[2.0, 2.0, 2.0]]])
+        bounds = np.array([[0.0, 0.0, 0.0], [2.0, 2.0, 2.0]])
+        sfm = SimpleNamespace(points=pts, point_colors=None, bounds=bounds)
+        a, voxel, _, _ = initial_anchors(sfm, FitConfig(), np.random.default_rng(0))
+        assert voxel == pytest.approx(2.0 / 128) and len(a) == len(np.unique(np.round(pts / voxel), axis=0))
+        a, voxel, _, _ = initial_anchors(sfm, FitConfig(voxel_rule="spacing"), np.random.default_rng(0))
+        # the median nearest-neighbour distance is the jitter (each lattice point has its twin): below the lattice step
+        assert 0 < voxel < 0.0035 * 2 and len(a) > len(g)
+        sparse = SimpleNamespace(points=np.concatenate([g, [[2.0, 2.0, 2.0]]]), point_colors=None, bounds=bounds)
+        a, voxel, _, _ = initial_anchors(sparse, FitConfig(voxel_rule="spacing"), np.random.default_rng(0))
+        assert voxel == pytest.approx(0.05) and len(a) == len(g) + 1  # one anchor per point: the scene decides
+        # a cap subsamples the initial set (seeded); a given size wins over the rule
+        a1, _, _, _ = initial_anchors(sparse, FitConfig(voxel_rule="spacing", max_anchors=50), np.random.default_rng(1))
+        a2, _, _, _ = initial_anchors(sparse, FitConfig(voxel_rule="spacing", max_anchors=50), np.random.default_rng(1))
+        assert len(a1) == 50 and np.array_equal(a1, a2)
+        _, voxel, _, _ = initial_anchors(sparse, FitConfig(voxel_rule="spacing", voxel_size=0.3),
+                                         np.random.default_rng(0))
+        assert voxel == 0.3
+        # no SfM points (Blender): random points in the bounds, where spacing means nothing: the extent rule
+        blender = SimpleNamespace(points=None, point_colors=None, bounds=bounds)
+        _, voxel, _, _ = initial_anchors(blender, FitConfig(voxel_rule="spacing", init_points=300),
+                                         np.random.default_rng(0))
+        assert voxel == pytest.approx(2.0 / 128)
+        with pytest.raises(ProxycodecError, match="voxel rule"):
+            FitConfig(voxel_rule="median")
+
 # ------------------------------------------------------------------------------------------------ CLI
 def test_cli_fit_and_eval(tiny_dataset, tmp_path):
     from click.testing import CliRunner
