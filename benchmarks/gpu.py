@@ -13,6 +13,8 @@ Stages (benchmarks/README.md, "GPU runs"), in the order --stages gives (default:
   f  render command; in-process micro-benchmark: torch projection + cuda compositor against the reference, and
      the projection alone, ours against gsplat's fused one, on the same Gaussians
   g  plain 3DGS (fit --explicit) on bonsai for stage d's budget, eval at 10%..100%, ours minus it per size, its SPZ
+  s  stage d with Scaffold-GS's anchor density (fit --voxel-rule spacing) for d's budget, eval at 10%..100%, minus
+     stage d and minus stage g per size
 Each stage has its own wall-clock limit and the run a total deadline (later stages are then skipped); a failing
 stage is recorded and the next one runs. gpu.json, gpu.md and logs.tar.gz are rewritten after every stage.
 """
@@ -373,6 +375,27 @@ def stage_g(R: Run, rec: dict) -> None:
                       f"(acceptance: >= 0 at every size, >= +3 on average)")
 
 
+def stage_s(R: Run, rec: dict) -> None:
+    """Stage d with Scaffold-GS's anchor density (`fit --voxel-rule spacing`: about one anchor per SfM point) for
+    stage d's training time on the same GPU, evaluated at the same sizes; per size, its PSNR minus stage d's (the
+    default density) and minus stage g's (plain 3DGS), where those ran."""
+    data, ply, d = R.data("bonsai"), R.work / "bonsai_spacing.ply", R.res["stages"].get("d", {})
+    budget = (d.get("fit") or {}).get("budget_s") or R.args.budget_bonsai
+    f = fit(R, rec, "s_fit", data, ply, 800, budget, ["--voxel-rule", "spacing"])
+    rec["key"] = (f"{f['iterations']:,} it in {f['train_seconds']} s = **{f['it_per_s']} it/s**, "
+                  f"{f.get('anchors', '?')} anchors")
+    ev = rec["eval"] = run_eval(R, "s_eval", ply, data, "0.25" if R.args.smoke else LEGO_RES)
+    rec["key"] += "; " + eval_text(ev)
+    parts = []
+    for k, label in (("d", "the default density (stage d)"), ("g", "3DGS (stage g)")):
+        other = ((R.res["stages"].get(k) or {}).get("eval") or {}).get("per_resolution")
+        if other:
+            diff = {x: round(v["psnr"] - other[x]["psnr"], 3) for x, v in ev["per_resolution"].items() if x in other}
+            rec[f"minus_{k}"] = diff
+            parts.append(f"minus {label}: mean {sum(diff.values()) / len(diff):+.2f} dB, min {min(diff.values()):+.2f}")
+    rec["cpu"] = "; ".join(parts)
+
+
 def stage_c(R: Run, rec: dict) -> None:
     a, ply, pxc, dist = R.args, R.work / "lego.ply", R.work / "lego.pxc", R.work / "lego_distill.pxc"
     if not ply.exists():
@@ -566,7 +589,9 @@ STAGES = {"a": ("pytest -m cuda", stage_a, lambda a: 300),
           "d": ("bonsai fit 800 px + eval", stage_d, lambda a: a.budget_bonsai + 200),
           "e": ("3DGS fit, convert, encode", stage_e, lambda a: a.budget_explicit + 420),
           "f": ("render, micro-benchmark", stage_f, lambda a: 150),
-          "g": ("bonsai plain 3DGS at d's budget + eval", stage_g, lambda a: a.budget_bonsai + 200)}
+          "g": ("bonsai plain 3DGS at d's budget + eval", stage_g, lambda a: a.budget_bonsai + 200),
+          "s": ("bonsai fit, Scaffold-GS's anchor density, at d's budget + eval", stage_s,
+                lambda a: a.budget_bonsai + 200)}
 
 
 def markdown(res: dict) -> str:
