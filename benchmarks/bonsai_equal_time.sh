@@ -1,11 +1,11 @@
 #!/usr/bin/env bash
 # Bonsai (Mip-NeRF 360, rebuilt poses) at its 800 px reference: our fit against plain 3DGS, a Scaffold-GS-style fit and
-# our fit trained at 100% only (single-scale train, multi-scale test), and our fit with Scaffold-GS's anchor density
-# (--voxel-rule spacing: about one anchor per SfM point), each for the same wall-time budget on the same
+# our fit trained at 100% only (single-scale train, multi-scale test), and our fit at the former default anchor
+# density (--voxel-rule extent: a quarter of the anchors), each for the same wall-time budget on the same
 # machine, then evaluated on the 37 held-out views at 10%..100%, with the container and the 3DGS PLY's SPZ.
 #   benchmarks/bonsai_equal_time.sh [BUDGET_SECONDS] [OUT_DIR] [STEPS]
-# STEPS: a comma-separated subset of ours,3dgs,scaffold,fixedres,encode,spacing,compare [default: all but spacing,
-# in that order; spacing fits, evaluates, encodes and evaluates its container].
+# STEPS: a comma-separated subset of ours,3dgs,scaffold,fixedres,encode,extent,compare [default: all but extent,
+# in that order; extent fits, evaluates, encodes and evaluates its container].
 # Re-runnable: a finished step (its output present) is skipped; an interrupted fit (ours or 3DGS) continues with
 # --resume (Ctrl-C writes its checkpoint; a SIGSTOPped step counts its pause, so resume with the budget plus the
 # pause). One training at a time (never two at once).
@@ -57,20 +57,20 @@ if want encode; then
   [ -f "$OUT/ours.pxc" ] || $PC encode "$OUT/ours.ply" -o "$OUT/ours.pxc" ${ENCODE_ARGS:-} > "$OUT/encode.log" 2>&1
   evaluate ours_pxc "$OUT/ours.pxc"
 fi
-if want spacing; then
-  fit spacing --voxel-rule spacing
-  [ -f "$OUT/spacing.pxc" ] || $PC encode "$OUT/spacing.ply" -o "$OUT/spacing.pxc" ${ENCODE_ARGS:-} \
-    > "$OUT/spacing.encode.log" 2>&1
-  evaluate spacing_pxc "$OUT/spacing.pxc"
+if want extent; then
+  fit extent --voxel-rule extent
+  [ -f "$OUT/extent.pxc" ] || $PC encode "$OUT/extent.ply" -o "$OUT/extent.pxc" ${ENCODE_ARGS:-} \
+    > "$OUT/extent.encode.log" 2>&1
+  evaluate extent_pxc "$OUT/extent.pxc"
 fi
 if want compare; then
   args=()
-  for n in ours ours_pxc spacing spacing_pxc 3dgs scaffold fixedres; do
+  for n in ours ours_pxc extent extent_pxc 3dgs scaffold fixedres; do
     [ -f "$OUT/${n}_eval/eval.json" ] && args+=("$n=$OUT/${n}_eval/eval.json")
   done
   sizes=()
   [ -f "$OUT/ours.pxc" ] && sizes+=(--bytes "ours_pxc=$(stat -c %s "$OUT/ours.pxc")")
-  [ -f "$OUT/spacing.pxc" ] && sizes+=(--bytes "spacing_pxc=$(stat -c %s "$OUT/spacing.pxc")")
+  [ -f "$OUT/extent.pxc" ] && sizes+=(--bytes "extent_pxc=$(stat -c %s "$OUT/extent.pxc")")
   [ -f "$OUT/3dgs.spz" ] && sizes+=(--bytes "3dgs=$(stat -c %s "$OUT/3dgs.spz")")
   base=()
   [ -f "$OUT/3dgs_eval/eval.json" ] && base=(--baseline 3dgs)

@@ -13,8 +13,8 @@ Stages (benchmarks/README.md, "GPU runs"), in the order --stages gives (default:
   f  render command; in-process micro-benchmark: torch projection + cuda compositor against the reference, and
      the projection alone, ours against gsplat's fused one, on the same Gaussians
   g  plain 3DGS (fit --explicit) on bonsai for stage d's budget, eval at 10%..100%, ours minus it per size, its SPZ
-  s  stage d with Scaffold-GS's anchor density (fit --voxel-rule spacing) for d's budget, eval at 10%..100%, minus
-     stage d and minus stage g per size
+  x  stage d at the former default density (fit --voxel-rule extent) for d's budget, eval at 10%..100%, stage d
+     minus it per size (stage d fits at the default, Scaffold-GS's density, since 2026-11-27)
 Each stage has its own wall-clock limit and the run a total deadline (later stages are then skipped); a failing
 stage is recorded and the next one runs. gpu.json, gpu.md and logs.tar.gz are rewritten after every stage.
 """
@@ -334,7 +334,8 @@ def stage_b(R: Run, rec: dict) -> None:
 
 def stage_d(R: Run, rec: dict) -> None:
     fit_eval(R, rec, "d", "bonsai", 800, R.args.budget_bonsai, "0.25" if R.args.smoke else LEGO_RES)
-    rec["cpu"] += " (CPU at 400 px, the GPU at 4x the pixels)" + before_text(R, rec, "bonsai_fit")
+    rec["cpu"] += (" (CPU at 400 px, the GPU at 4x the pixels)" + before_text(R, rec, "bonsai_fit")
+                   + " (that run had the extent / 128 density: stage x is like for like)")
 
 
 def before_text(R: Run, rec: dict, key: str) -> str:
@@ -375,25 +376,24 @@ def stage_g(R: Run, rec: dict) -> None:
                       f"(acceptance: >= 0 at every size, >= +3 on average)")
 
 
-def stage_s(R: Run, rec: dict) -> None:
-    """Stage d with Scaffold-GS's anchor density (`fit --voxel-rule spacing`: about one anchor per SfM point) for
-    stage d's training time on the same GPU, evaluated at the same sizes; per size, its PSNR minus stage d's (the
-    default density) and minus stage g's (plain 3DGS), where those ran."""
-    data, ply, d = R.data("bonsai"), R.work / "bonsai_spacing.ply", R.res["stages"].get("d", {})
+def stage_x(R: Run, rec: dict) -> None:
+    """Stage d at the former default anchor density (`fit --voxel-rule extent`: extent / 128, about a quarter of
+    the anchors) for stage d's training time on the same GPU, evaluated at the same sizes; per size, stage d's PSNR
+    minus this one's, and its it/s against the 5f76b9c run (which had this density)."""
+    data, ply, d = R.data("bonsai"), R.work / "bonsai_extent.ply", R.res["stages"].get("d", {})
     budget = (d.get("fit") or {}).get("budget_s") or R.args.budget_bonsai
-    f = fit(R, rec, "s_fit", data, ply, 800, budget, ["--voxel-rule", "spacing"])
+    f = fit(R, rec, "x_fit", data, ply, 800, budget, ["--voxel-rule", "extent"])
     rec["key"] = (f"{f['iterations']:,} it in {f['train_seconds']} s = **{f['it_per_s']} it/s**, "
                   f"{f.get('anchors', '?')} anchors")
-    ev = rec["eval"] = run_eval(R, "s_eval", ply, data, "0.25" if R.args.smoke else LEGO_RES)
+    ev = rec["eval"] = run_eval(R, "x_eval", ply, data, "0.25" if R.args.smoke else LEGO_RES)
     rec["key"] += "; " + eval_text(ev)
-    parts = []
-    for k, label in (("d", "the default density (stage d)"), ("g", "3DGS (stage g)")):
-        other = ((R.res["stages"].get(k) or {}).get("eval") or {}).get("per_resolution")
-        if other:
-            diff = {x: round(v["psnr"] - other[x]["psnr"], 3) for x, v in ev["per_resolution"].items() if x in other}
-            rec[f"minus_{k}"] = diff
-            parts.append(f"minus {label}: mean {sum(diff.values()) / len(diff):+.2f} dB, min {min(diff.values()):+.2f}")
-    rec["cpu"] = "; ".join(parts)
+    rec["cpu"] = before_text(R, rec, "bonsai_fit").lstrip("; ")
+    ours = (d.get("eval") or {}).get("per_resolution")
+    if ours:
+        diff = {x: round(ours[x]["psnr"] - v["psnr"], 3) for x, v in ev["per_resolution"].items() if x in ours}
+        rec["d_minus_x"] = diff
+        rec["cpu"] += (f"; stage d (spacing) minus this: mean {sum(diff.values()) / len(diff):+.2f} dB, "
+                       f"min {min(diff.values()):+.2f}")
 
 
 def stage_c(R: Run, rec: dict) -> None:
@@ -590,7 +590,7 @@ STAGES = {"a": ("pytest -m cuda", stage_a, lambda a: 300),
           "e": ("3DGS fit, convert, encode", stage_e, lambda a: a.budget_explicit + 420),
           "f": ("render, micro-benchmark", stage_f, lambda a: 150),
           "g": ("bonsai plain 3DGS at d's budget + eval", stage_g, lambda a: a.budget_bonsai + 200),
-          "s": ("bonsai fit, Scaffold-GS's anchor density, at d's budget + eval", stage_s,
+          "x": ("bonsai fit at the extent / 128 density, d's budget + eval", stage_x,
                 lambda a: a.budget_bonsai + 200)}
 
 

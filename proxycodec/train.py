@@ -106,10 +106,10 @@ class FitConfig:
     proxies: bool = True  # stage 2 (proxy anchors + residual predictor); False: Scaffold-GS only
     # initialisation
     voxel_size: float = 0.0  # > 0: this size; <= 0: chosen by ``voxel_rule``
-    # [D] "extent": the bounds' extent / voxel_divisions. "spacing": Scaffold-GS's automatic voxel, the median
-    # distance between SfM points and their nearest neighbour (about one anchor per point: the scene decides);
-    # without SfM points (Blender's random init) "spacing" falls back to "extent". SPEC.md section 5.
-    voxel_rule: str = "extent"
+    # [D] "spacing": Scaffold-GS's automatic voxel, the median distance between the distinct SfM points and their
+    # nearest neighbour (about one anchor per point: the scene decides); without SfM points (Blender's random init)
+    # it falls back to "extent": the bounds' extent / voxel_divisions. Why spacing: SPEC.md section 5.
+    voxel_rule: str = "spacing"
     voxel_divisions: int = 128
     init_points: int = 5_000  # random points in the bounds when the dataset has no SfM points (Blender)
     # loss

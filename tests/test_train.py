@@ -503,7 +503,8 @@ class TestFit:
         pts = np.concatenate([g, g + rng.uniform(-0.002, 0.002, g.shape), [[2.0, 2.0, 2.0]]])
         bounds = np.array([[0.0, 0.0, 0.0], [2.0, 2.0, 2.0]])
         sfm = SimpleNamespace(points=pts, point_colors=None, bounds=bounds)
-        a, voxel, _, _ = initial_anchors(sfm, FitConfig(), np.random.default_rng(0))
+        assert FitConfig().voxel_rule == "spacing"  # the scene decides (SPEC.md section 5)
+        a, voxel, _, _ = initial_anchors(sfm, FitConfig(voxel_rule="extent"), np.random.default_rng(0))
         assert voxel == pytest.approx(2.0 / 128) and len(a) == len(np.unique(np.round(pts / voxel), axis=0))
         a, voxel, _, _ = initial_anchors(sfm, FitConfig(voxel_rule="spacing"), np.random.default_rng(0))
         # the median nearest-neighbour distance is the jitter (each lattice point has its twin): below the lattice step
