@@ -368,12 +368,18 @@ def stage_g(R: Run, rec: dict) -> None:
         rec["key"] += f"; SPZ {rec['spz_bytes']:,} B"
     except Exception as e:  # noqa: BLE001 - recorded, the comparison below still counts
         rec["spz_error"] = f"{type(e).__name__}: {e}"
+    rec["cpu"] += d_minus(rec, d, ev, "ours_minus_3dgs", "ours - 3DGS",
+                          " (acceptance: >= 0 at every size, >= +3 on average)")
+
+
+def d_minus(rec: dict, d: dict, ev: dict, field: str, label: str, tail: str = "") -> str:
+    """Stage d's PSNR minus ``ev``'s per size into ``rec[field]``, and its mean and minimum as text ('' without d)."""
     ours = (d.get("eval") or {}).get("per_resolution")
-    if ours:
-        diff = {k: round(ours[k]["psnr"] - v["psnr"], 3) for k, v in ev["per_resolution"].items() if k in ours}
-        rec["ours_minus_3dgs"] = diff
-        rec["cpu"] += (f"; ours - 3DGS: mean {sum(diff.values()) / len(diff):+.2f} dB, min {min(diff.values()):+.2f} "
-                      f"(acceptance: >= 0 at every size, >= +3 on average)")
+    if not ours:
+        return ""
+    diff = {k: round(ours[k]["psnr"] - v["psnr"], 3) for k, v in ev["per_resolution"].items() if k in ours}
+    rec[field] = diff
+    return f"; {label}: mean {sum(diff.values()) / len(diff):+.2f} dB, min {min(diff.values()):+.2f}{tail}"
 
 
 def stage_x(R: Run, rec: dict) -> None:
@@ -387,13 +393,8 @@ def stage_x(R: Run, rec: dict) -> None:
                   f"{f.get('anchors', '?')} anchors")
     ev = rec["eval"] = run_eval(R, "x_eval", ply, data, "0.25" if R.args.smoke else LEGO_RES)
     rec["key"] += "; " + eval_text(ev)
-    rec["cpu"] = before_text(R, rec, "bonsai_fit").lstrip("; ")
-    ours = (d.get("eval") or {}).get("per_resolution")
-    if ours:
-        diff = {x: round(ours[x]["psnr"] - v["psnr"], 3) for x, v in ev["per_resolution"].items() if x in ours}
-        rec["d_minus_x"] = diff
-        rec["cpu"] += (f"; stage d (spacing) minus this: mean {sum(diff.values()) / len(diff):+.2f} dB, "
-                       f"min {min(diff.values()):+.2f}")
+    rec["cpu"] = (before_text(R, rec, "bonsai_fit").lstrip("; ")
+                  + d_minus(rec, d, ev, "d_minus_x", "stage d (spacing) minus this"))
 
 
 def stage_c(R: Run, rec: dict) -> None:
