@@ -64,6 +64,11 @@ def knn_scale(points: np.ndarray) -> np.ndarray:
     return np.sqrt(np.maximum(d2, 1e-7))
 
 
+def has_sfm_points(data) -> bool:
+    """Whether ``initial_points`` starts from the dataset's SfM points (at least 8) rather than random ones."""
+    return data.points is not None and len(data.points) >= 8
+
+
 def initial_points(data, n_random: int, rng: np.random.Generator, what: str
                    ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, float]:
     """-> (points [N, 3] float64, their SfM colours [N, 3] 0..255 or None, bounds [2, 3], extent): the dataset's SfM
@@ -73,9 +78,8 @@ def initial_points(data, n_random: int, rng: np.random.Generator, what: str
     extent = float((bounds[1] - bounds[0]).max())
     if extent <= 0 or not math.isfinite(extent):
         raise ProxycodecError(f"dataset bounds are empty; cannot place initial {what}")
-    pts = data.points
-    if pts is not None and len(pts) >= 8:
-        pts = np.asarray(pts, dtype=np.float64)
+    if has_sfm_points(data):
+        pts = np.asarray(data.points, dtype=np.float64)
         inside = ((pts >= bounds[0] - 0.5 * extent) & (pts <= bounds[1] + 0.5 * extent)).all(1)
         colors = None if data.point_colors is None else np.asarray(data.point_colors, dtype=np.float64)[inside]
         return pts[inside], colors, bounds, extent

@@ -39,7 +39,7 @@ from .errors import ProxycodecError
 from .formats.container import read_container
 from .loop import (
     ProgressFn, TargetImages, TrainingRun, check_run_length, check_xi_sampling, checkpoint_path_for, fmt_time,
-    initial_points, knn_scale, photometric_loss, run_checkpointed,
+    has_sfm_points, initial_points, knn_scale, photometric_loss, run_checkpointed,
 )
 from .model import SceneModel, render_scene, scene_visible, weights_path_for
 from .netconfig import PredictorConfig
@@ -346,10 +346,8 @@ def initial_voxel(pts: np.ndarray, extent: float, cfg: FitConfig, has_sfm: bool)
     """The anchor voxel: ``cfg.voxel_size`` if given, else by ``cfg.voxel_rule`` (see ``FitConfig``)."""
     if cfg.voxel_size > 0:
         return float(cfg.voxel_size)
-    if cfg.voxel_rule == "spacing" and has_sfm:
-        spacing = point_spacing(pts)
-        if spacing > 0 and math.isfinite(spacing):
-            return spacing
+    if cfg.voxel_rule == "spacing" and has_sfm and (spacing := point_spacing(pts)) > 0:
+        return spacing
     return extent / cfg.voxel_divisions
 
 
@@ -357,8 +355,7 @@ def initial_anchors(data, cfg: FitConfig, rng: np.random.Generator) -> tuple[np.
     """-> (anchor positions [M, 3], voxel size, scene centre [3], scene radius) from the dataset. With
     ``cfg.max_anchors``, a larger voxelised set is subsampled to it (at random, seeded)."""
     pts, _, bounds, extent = initial_points(data, cfg.init_points, rng, "anchors")
-    has_sfm = data.points is not None and len(data.points) >= 8
-    voxel = initial_voxel(pts, extent, cfg, has_sfm)
+    voxel = initial_voxel(pts, extent, cfg, has_sfm_points(data))
     anchors = voxelise(pts, voxel)
     if cfg.max_anchors is not None and len(anchors) > cfg.max_anchors:
         anchors = anchors[np.sort(rng.choice(len(anchors), cfg.max_anchors, replace=False))]

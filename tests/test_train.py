@@ -490,7 +490,6 @@ class TestFit:
         with pytest.raises(ProxycodecError, match="anchor cap"):
             FitConfig(max_anchors=0)
 
-
     def test_initial_voxel_rules(self):
         from types import SimpleNamespace
 
@@ -526,6 +525,7 @@ class TestFit:
         assert voxel == pytest.approx(2.0 / 128)
         with pytest.raises(ProxycodecError, match="voxel rule"):
             FitConfig(voxel_rule="median")
+
 
 # ------------------------------------------------------------------------------------------------ CLI
 def test_cli_fit_and_eval(tiny_dataset, tmp_path):
