@@ -56,9 +56,12 @@ SCENES = {
     "lego": {"dataset": SHARED / "nerf_synthetic" / "lego", "max_width": 400, "views": 8, "budgets": [120, 400, 900],
              "test_every": 8},
     "bonsai": {"dataset": SHARED / "mipnerf360" / "bonsai", "max_width": 800, "views": 4, "budgets": [300, 600],
-               "test_every": 8},
+               "test_every": 8, "voxel_rules": ["extent"]},
 }
 QUICK = {"lego": {"max_width": 160, "views": 2, "budgets": [20, 60]}}
+# "voxel_rules": fit's other anchor densities at the main budget (a scene with SfM points only: without them the
+# rule is extent / 128 whatever is asked), each encoded with the defaults: the price of the default
+# ``--voxel-rule spacing`` in iterations per second against what its finer anchors give.
 # The rate term's weights of the RD sweep (fit --lambda-rate), around the main fit's default (1e-4).
 RATE_LAMBDAS = (0.0, 3e-5, 3e-4)
 QUICK_RATE_LAMBDAS = (0.0,)
@@ -172,7 +175,8 @@ def main(argv=None) -> int:
     if args.ablation_iters:
         ab_spec["iters"] = args.ablation_iters
     n_rate = len(QUICK_RATE_LAMBDAS if args.quick else RATE_LAMBDAS)
-    est = sum(sum(sp["budgets"]) + (2 + n_rate) * sp["budgets"][-1] for sp in specs.values())
+    est = sum(sum(sp["budgets"]) + (2 + n_rate + len(sp.get("voxel_rules", []))) * sp["budgets"][-1]
+              for sp in specs.values())
     # a rough rate of 20 iterations/s at 200 px, scaling with the pixel count
     ab_fit_s = ab_spec["iters"] / 20.0 * (ab_spec["max_width"] / 200.0) ** 2
     est += sum(ab_fit_s * (1 + len({tuple(sorted(a[1].items())) for a in ablations}) + len(noise_seeds))
@@ -286,6 +290,12 @@ def map_pass(runner, args, specs, ablations, ab_scenes, noise_seeds, ab_spec, ab
             points.append(encode_point(runner, n, f"ours, fit {main_b:g} s, --lambda-rate {lam:g}, default encode",
                                        ply, {}, ev, fit=rec, evaluated=evaluated, group="rate", default=False,
                                        sweeps={"lambda_rate": f"{lam:g}"}))
+        # 4c. the anchor density: fit's other voxel rules at the main budget, each encoded with the defaults
+        for rule in sp.get("voxel_rules", []):
+            ply, rec = fit(f"voxel_rule={rule} budget={main_b:g}", main_b, voxel_rule=rule)
+            points.append(encode_point(runner, n, f"ours, fit {main_b:g} s, --voxel-rule {rule}, default encode",
+                                       ply, {}, ev, fit=rec, evaluated=evaluated, group="anchor density",
+                                       default=False, sweeps={"voxel_rule": rule}))
         # 5. ablations: fixed iterations at the ablation width, each against the default fit of the same settings
         if n in ab_scenes and ablations:
             ab_w, ab_it = ab_spec["max_width"], ab_spec["iters"]
