@@ -88,8 +88,8 @@ class AnchorScene:
 def scene_from_scaffold_ply(ply, voxel_size: float | None = None, source: str | None = None) -> AnchorScene:
     """Build an ``AnchorScene`` from a ``formats.scaffold_ply.ScaffoldPly``.
 
-    Scaffold-GS does not store the voxel size in the PLY; when not given, it is estimated as the most common
-    spacing of the anchor grid (median 1-NN distance snapped to the grid step).
+    Scaffold-GS does not store the voxel size in the PLY; when not given, it is estimated as the anchors' median
+    nearest-neighbour distance (``estimate_voxel_size``), the grid step of a voxelised set.
     """
     pos = torch.from_numpy(np.array(ply.positions, dtype=np.float32, copy=True))
     scene = AnchorScene(
@@ -102,15 +102,19 @@ def scene_from_scaffold_ply(ply, voxel_size: float | None = None, source: str | 
     return scene.validate(source)
 
 
+def point_spacing(points: np.ndarray) -> float:
+    """The median distance from each point to its nearest other distinct point (Scaffold-GS's automatic voxel size);
+    0 when fewer than two distinct points. A k-d tree over every point: O(N log N) time, O(N) memory."""
+    from scipy.spatial import cKDTree
+
+    pts = np.unique(np.asarray(points, dtype=np.float64), axis=0)
+    if len(pts) < 2:
+        return 0.0
+    d, _ = cKDTree(pts).query(pts, k=2)
+    return float(np.median(d[:, 1]))
+
+
 def estimate_voxel_size(positions: torch.Tensor) -> float:
-    """Median nearest-neighbour distance along any axis, i.e. the grid step of voxelised anchors."""
-    n = positions.shape[0]
-    if n < 2:
-        return 1.0
-    p = positions.double()
-    sample = p[torch.randperm(n, generator=torch.Generator().manual_seed(0))[:2048]]
-    d = torch.cdist(sample, p)
-    d[d == 0] = float("inf")
-    nn = d.min(dim=1).values
-    nn = nn[torch.isfinite(nn)]
-    return float(nn.median()) if nn.numel() else 1.0
+    """The grid step of voxelised anchors: their ``point_spacing`` (1.0 when there is no spacing to measure)."""
+    spacing = point_spacing(positions.detach().cpu().numpy())
+    return spacing if spacing > 0 else 1.0

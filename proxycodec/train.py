@@ -49,7 +49,7 @@ from .proxy import (
     predictor_neighbours, offset_recon_loss, predictor_from_json, recon_loss, select_proxies, train_predictor,
 )
 from .render.project import GateConfig
-from .scene import AnchorScene
+from .scene import AnchorScene, point_spacing
 from .sections import MAX_LEVEL_CELLS
 from .strategy import ScaffoldStrategy
 
@@ -328,18 +328,6 @@ def voxelise(points: np.ndarray, voxel: float) -> np.ndarray:
     """Scaffold-GS: unique(round(p / v)) * v."""
     cells = np.unique(np.round(points / voxel).astype(np.int64), axis=0)
     return cells.astype(np.float64) * voxel
-
-
-def point_spacing(points: np.ndarray) -> float:
-    """The median distance from each point to its nearest other point (Scaffold-GS's automatic voxel size); 0 when
-    fewer than two distinct points."""
-    from scipy.spatial import cKDTree
-
-    pts = np.unique(np.asarray(points, dtype=np.float64), axis=0)
-    if len(pts) < 2:
-        return 0.0
-    d, _ = cKDTree(pts).query(pts, k=2)
-    return float(np.median(d[:, 1]))
 
 
 def initial_voxel(pts: np.ndarray, extent: float, cfg: FitConfig, has_sfm: bool) -> float:
