@@ -10,7 +10,9 @@ from pathlib import Path
 import click
 
 from ..errors import ProxycodecError
-from .common import command_device, config_option, on_device, parse_resolutions, render_views, user_errors
+from .common import (
+    command_device, config_option, on_device, parse_resolutions, render_views, supersample_option, user_errors,
+)
 from .convert import convert_options
 
 #: An option whose default is ``EncodeConfig``'s field of the same name.
@@ -229,9 +231,10 @@ def load_cameras(spec: str):
               help="Export the colours of this stored camera instead (SH degree 0).")
 @click.option("--backend", default="auto", show_default=True,
               type=click.Choice(["auto", "reference", "cpu", "cuda"]), help="Compositing backend.")
+@supersample_option
 @user_errors
 def decode(container, res, cameras, out_dir, views, no_render, ply, spz, glb, lod, levels, lod_format, sh_degree,
-           bake_view, backend) -> None:
+           bake_view, backend, supersample) -> None:
     """Decode CONTAINER (the leaves' features regenerated from their nearest proxies by its residual predictor)
     and render its views at any resolution: PNGs in OUT (default CONTAINER_renders/viewNNN_resX.XXX.png), on the
     background the scene was trained on.
@@ -241,7 +244,8 @@ def decode(container, res, cameras, out_dir, views, no_render, ply, spz, glb, lo
     --lod writes one such file per level. With an export, PNGs are rendered only when -o or --view asks for them.
 
     Rendering on the CPU without an export never imports torch (numpy + the numba kernels, the same results);
-    exports, --backend reference|cuda and containers that path does not cover take the torch path."""
+    exports, --backend reference|cuda, --supersample above 1 and containers that path does not cover take the torch
+    path."""
     from ..scenes import decode_torch_free
 
     resolutions = parse_resolutions(res)
@@ -258,8 +262,8 @@ def decode(container, res, cameras, out_dir, views, no_render, ply, spz, glb, lo
         raise ProxycodecError("--bake-view applies to --ply/--spz/--glb, not to --lod")
     t0 = time.perf_counter()
     # the torch-free path (CPU) unless torch is asked for: an export, a torch backend, or --device cuda
-    lite = decode_torch_free(container) if backend in ("auto", "cpu") and not exporting and not _cuda_asked() \
-        else None
+    lite = decode_torch_free(container) if backend in ("auto", "cpu") and not exporting and supersample == 1 \
+        and not _cuda_asked() else None
     if lite is not None:
         from ..lite import default_cameras
 
@@ -277,7 +281,7 @@ def decode(container, res, cameras, out_dir, views, no_render, ply, spz, glb, lo
     if not no_render and (not exporting or out_dir or views):
         out = Path(out_dir) if out_dir else Path(container).with_suffix("").with_name(
             Path(container).stem + "_renders")
-        render_views(model, resolutions, out, list(views) or None, backend)
+        render_views(model, resolutions, out, list(views) or None, backend, supersample=supersample)
 
 
 def _cuda_asked() -> bool:

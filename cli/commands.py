@@ -8,7 +8,9 @@ from pathlib import Path
 
 import click
 
-from .common import background_option, command_device, on_device, parse_resolutions, render_views, user_errors
+from .common import (
+    background_option, command_device, on_device, parse_resolutions, render_views, supersample_option, user_errors,
+)
 
 
 @click.command()
@@ -34,10 +36,12 @@ def sample(out: str, seed: int) -> None:
 @click.option("--view", "views", multiple=True, type=int, help="Camera index (repeatable; default: all stored).")
 @click.option("--backend", default="auto", show_default=True,
               type=click.Choice(["auto", "reference", "cpu", "cuda"]), help="Compositing backend.")
+@supersample_option
 @background_option("the scene's own (an anchor scene or container: the one it was trained on; a 3DGS PLY: "
                    "white_background in the trainer's cfg_args beside it or two folders up, else black)")
 @user_errors
-def render(scene: str, res: str, out_dir: str, views: tuple[int, ...], backend: str, background) -> None:
+def render(scene: str, res: str, out_dir: str, views: tuple[int, ...], backend: str, supersample: int,
+           background) -> None:
     """Render a scene at the given resolutions to PNG files (OUT/viewNNN_resX.XXX.png).
 
     Reads an anchor scene (PLY + weights, or a trained Scaffold-GS output), a container (leaves regenerated), or an
@@ -48,7 +52,8 @@ def render(scene: str, res: str, out_dir: str, views: tuple[int, ...], backend: 
     model = on_device(load_any(scene))
     if background is not None:
         model.background = background
-    render_views(model, parse_resolutions(res), Path(out_dir), list(views) or None, backend)
+    render_views(model, parse_resolutions(res), Path(out_dir), list(views) or None, backend,
+                 supersample=supersample)
 
 
 @click.command()

@@ -103,6 +103,16 @@ def background_option(auto_help: str):
                         help=f"Background colour: black, white or R,G,B in [0, 1]; auto: {auto_help}.")
 
 
+def supersample_option(f):
+    """``--supersample N``: render at N times the size and box-filter down (``render.render_supersampled``)."""
+    from ..render import MAX_SUPERSAMPLE
+
+    return click.option("--supersample", type=click.IntRange(1, MAX_SUPERSAMPLE), default=1, show_default=True,
+                        help="Anti-alias by supersampling: render at N times the width and height (the resolution "
+                             "embedding sees N x the ratio) and average each N x N block; 1: the plain render. "
+                             "Small sizes gain most, at little cost (benchmarks/README.md, 'Supersampling').")(f)
+
+
 class ConfigDefault(click.Option):
     """An option whose default is a field of a configuration dataclass (``config``: "module:Class"; ``field``: the
     option's name unless given; ``convert``: field value -> option value). The class is imported when click first
@@ -127,8 +137,10 @@ def config_option(config: str, *param_decls: str, field: str | None = None, conv
     return click.option(*param_decls, cls=ConfigDefault, config=config, field=field, convert=convert, **attrs)
 
 
-def render_views(model, resolutions, out_dir: Path, views, backend: str, prefix: str = "") -> list[dict]:
-    """Render and write PNGs. ``model``: a ``SceneModel`` or a ``lite.LiteScene`` (torch-free: numpy images)."""
+def render_views(model, resolutions, out_dir: Path, views, backend: str, prefix: str = "",
+                 supersample: int = 1) -> list[dict]:
+    """Render and write PNGs. ``model``: a ``SceneModel`` or a ``lite.LiteScene`` (torch-free: numpy images; the
+    plain render only), supersampled by ``supersample`` (``render.render_supersampled``)."""
     from PIL import Image
 
     cams = model.cameras
@@ -145,7 +157,12 @@ def render_views(model, resolutions, out_dir: Path, views, backend: str, prefix:
     for i in idx:
         for xi in resolutions:
             t0 = time.perf_counter()
-            r = model.render(cams[i], xi, backend=backend)
+            if supersample == 1:
+                r = model.render(cams[i], xi, backend=backend)
+            else:
+                from ..render import render_supersampled
+
+                r = render_supersampled(model, cams[i], xi, supersample, backend=backend)
             dt = time.perf_counter() - t0
             h, w = r.image.shape[:2]
             path = out_dir / f"{prefix}view{i:03d}_res{xi:.3f}.png"

@@ -9,7 +9,9 @@ from pathlib import Path
 
 import click
 
-from .common import background_option, command_device, config_option, on_device, parse_resolutions, user_errors
+from .common import (
+    background_option, command_device, config_option, on_device, parse_resolutions, supersample_option, user_errors,
+)
 
 #: Options whose default is the field of the same name of ``FitConfig`` (``ExplicitConfig``: ``--explicit`` only).
 fit_option = functools.partial(config_option, "proxycodec.train:FitConfig")
@@ -203,11 +205,12 @@ def _fit_explicit(dataset, out, run: dict, max_width, seed, images, test_every, 
 @click.option("--gate", "gate_mode", type=click.Choice(["model", "on", "off"]), default="model", show_default=True,
               help="Coverage gate when rendering: the model's own setting, or forced on (post-hoc gating of a "
                    "model trained with --no-gate, with its stored kappa/eta) or off.")
+@supersample_option
 @background_option("the dataset's (its photos are composited on it) for a 3DGS PLY; an anchor scene or container "
                    "renders on the one it was trained on")
 @user_errors
 def eval_cmd(scene, dataset, out_dir, max_width, res, protocol, n_views, images, test_every, no_undistort, backend,
-             gate_mode, background) -> None:
+             gate_mode, supersample, background) -> None:
     """Evaluate SCENE on DATASET's test views at many resolutions: PSNR, SSIM, LPIPS, render time and Gaussians
     drawn per resolution.
 
@@ -248,7 +251,8 @@ def eval_cmd(scene, dataset, out_dir, max_width, res, protocol, n_views, images,
         views = views[:n_views]
     crop_keys = {(views[0], xi): None for xi in (0.1, 0.25, 0.5, 1.0, 1.5) if xi in resolutions}
     rep = evaluate(model, data, resolutions=resolutions, views=views, backend=backend, scene_name=Path(scene).stem,
-                   keep_images=crop_keys, log=lambda s: click.echo(s, err=True), protocol=protocol)
+                   keep_images=crop_keys, log=lambda s: click.echo(s, err=True), protocol=protocol,
+                   supersample=supersample)
     rep.summary["fit"] = {k: fit_meta.get(k) for k in ("iterations", "seconds", "stage")} if fit_meta else None
     rep.summary["max_width"] = max_width
     rep.summary["gate"] = {"mode": gate_mode, **gate_used} if gate_used is not None else None

@@ -314,5 +314,13 @@ def test_cli_fit_explicit_then_eval(tiny_blender, tmp_path):
     assert all(math.isfinite(d["psnr"]) for d in rep["per_resolution"])
     assert rep["summary"]["anchors"] is None and rep["summary"]["gaussians_stored"] > 0
     assert "explicit Gaussians" in (tmp_path / "ev" / "eval.md").read_text()
+    r = CliRunner().invoke(cli, ["eval", str(out), str(tiny_blender), "-o", str(tmp_path / "ev2"),
+                                 "--max-width", "20", "--res", "0.5,1.0", "--views", "1", "--supersample", "2"])
+    assert r.exit_code == 0, r.output
+    rep2 = json.loads((tmp_path / "ev2" / "eval.json").read_text())
+    assert [d["width"] for d in rep2["per_resolution"]] == [10, 20] and rep2["summary"]["supersample"] == 2
+    assert rep["summary"]["supersample"] == 1
+    assert "2 x 2 samples per pixel" in (tmp_path / "ev2" / "eval.md").read_text()
+    assert [d["psnr"] for d in rep2["per_resolution"]] != [d["psnr"] for d in rep["per_resolution"]]
     r = CliRunner().invoke(cli, ["fit", str(tiny_blender), "--explicit", "-o", str(out), "--iters", "2", "--resume"])
     assert r.exit_code == 2 and "no checkpoint to resume from" in r.output and "e.ckpt.pxc" in r.output

@@ -140,3 +140,43 @@ def render_gaussians(
 
 __all__ = ["GateConfig", "Projected", "RenderResult", "project", "project_gaussians", "rasterize",
            "rasterize_reference", "render_gaussians", "available_backends", "resolve_backend", "BACKENDS"]
+
+
+#: The largest supersampling factor ``render_supersampled`` accepts (8 x 8 renders per output pixel).
+MAX_SUPERSAMPLE = 8
+
+
+def check_supersample(factor) -> int:
+    """``factor`` as an int in 1..``MAX_SUPERSAMPLE``, else our one-line error."""
+    if isinstance(factor, bool) or not isinstance(factor, (int, float)) or factor != int(factor) \
+            or not 1 <= int(factor) <= MAX_SUPERSAMPLE:
+        raise ProxycodecError(f"supersampling factor must be an integer in 1..{MAX_SUPERSAMPLE}, got {factor!r}")
+    return int(factor)
+
+
+def render_supersampled(model, camera, xi: float, factor: int = 1, *, backend: str = "auto"):
+    """``model.render(camera, xi)`` anti-aliased by supersampling (any model with ``render(camera, xi, backend=,
+    size=)``: an anchor scene, a decoded container, plain 3DGS).
+
+    ``factor`` 1 is the plain render. Otherwise the view renders at ``factor`` times the output's width and height
+    (the same field of view; a resolution embedding sees ``factor * xi``, capped at ``camera.XI_MAX``) and each
+    ``factor x factor`` block of pixels is averaged: a box filter, the area average the photos' smaller sizes are
+    made with (``formats.images``). The result keeps the large render's ``projected`` (what was drawn there)."""
+    import dataclasses
+
+    import torch
+
+    from ..camera import XI_MAX, check_xi
+
+    factor = check_supersample(factor)
+    if factor == 1:
+        return model.render(camera, xi, backend=backend)
+    small = camera.scaled(check_xi(xi))
+    r = model.render(camera, min(factor * float(xi), XI_MAX), backend=backend,
+                     size=(small.width * factor, small.height * factor))
+
+    def box(x: torch.Tensor) -> torch.Tensor:  # [H*f, W*f, C] -> [H, W, C]
+        H, W, C = small.height, small.width, x.shape[-1]
+        return x.reshape(H, factor, W, factor, C).mean(dim=(1, 3))
+
+    return dataclasses.replace(r, image=box(r.image), alpha=box(r.alpha[..., None])[..., 0])
