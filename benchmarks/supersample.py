@@ -1,7 +1,8 @@
 """What supersampling buys and costs: PSNR and render time per resolution, per model, per factor.
 
     python benchmarks/supersample.py ours=scene.ply 3dgs=3dgs.ply --dataset ../shared/data/mipnerf360/bonsai \\
-        --max-width 800 --res 0.1,0.2,0.3,0.4,0.5 --factors 1,2,3 --out benchmarks/results/bonsai800/supersample
+        --max-width 800 --res 0.1,0.2,0.3,0.4,0.5,0.6,0.7,0.8,0.9,1 --factors 1,2,3:0.5 --views-every 3 \
+        --out benchmarks/results/bonsai800/supersample
 
 Each model (LABEL=PATH: an anchor scene, a container or a 3DGS PLY, as ``proxycodec eval`` reads them) is evaluated
 on the dataset's test views at each resolution with each supersampling factor (``render.render_supersampled``:
@@ -26,27 +27,29 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 
 
-def run(models: dict[str, str], dataset: str, max_width: int | None, res: list[float], factors: list[int],
-        n_views: int | None, log) -> dict:
+def run(models: dict[str, str], dataset: str, max_width: int | None, res: list[float],
+        factors: dict[int, float], views_every: int, log) -> dict:
+    """``factors``: factor -> the largest resolution it is measured at."""
     from proxycodec.evaluate import evaluate
     from proxycodec.explicit import ExplicitModel
     from proxycodec.formats.datasets import load_dataset
     from proxycodec.scenes import load_any
 
     data = load_dataset(dataset, max_width=max_width)
-    views = list(data.test_indices)[:n_views] if n_views else list(data.test_indices)
-    out = {"views": views, "resolutions": res, "factors": factors, "models": {}}
+    views = list(data.test_indices)[::views_every]
+    out = {"views": views, "resolutions": res, "factors": {str(f): m for f, m in factors.items()}, "models": {}}
     for label, path in models.items():
         model = load_any(path)
         if isinstance(model, ExplicitModel):  # the dataset's background, as ``eval`` renders a 3DGS PLY
             model.background = tuple(data.background)
         model.render(data.cameras[views[0]], 0.5)  # warm-up (numba's cache, the allocator): not timed
         per = {}
-        for f in factors:
+        for f, top in factors.items():
             t0 = time.perf_counter()
-            rep = evaluate(model, data, resolutions=res, views=views, supersample=f)
+            fres = [x for x in res if x <= top + 1e-9]
+            rep = evaluate(model, data, resolutions=fres, views=views, supersample=f)
             rows = {}
-            for xi in res:
+            for xi in fres:
                 rs = [r for r in rep.rows if r["xi"] == float(xi)]
                 rows[f"{xi:g}"] = {"psnr": statistics.fmean(r["psnr"] for r in rs),
                                    "ssim": statistics.fmean(r["ssim"] for r in rs),
@@ -70,15 +73,17 @@ def markdown(res: dict) -> str:
         for f, rows in m["per_factor"].items():
             cells = []
             for x in xi:
-                r = rows[x]
-                if base is None or f == "1":
+                r = rows.get(x)
+                if r is None:
+                    cells.append("")
+                elif base is None or f == "1":
                     cells.append(f"{r['psnr']:.2f} ({r['ms_median']:.0f} ms)")
                 else:
                     b = base[x]
                     cells.append(f"{r['psnr']:.2f} ({r['psnr'] - b['psnr']:+.2f}, "
                                  f"{r['ms_median'] / b['ms_median']:.1f}x)")
-            mean = statistics.fmean(rows[x]["psnr"] for x in xi)
-            lines.append(f"| {label} | {f} | " + " | ".join(cells) + f" | {mean:.2f} |")
+            mean = statistics.fmean(rows[x]["psnr"] for x in xi) if all(x in rows for x in xi) else None
+            lines.append(f"| {label} | {f} | " + " | ".join(cells) + f" | {'' if mean is None else f'{mean:.2f}'} |")
     return "\n".join(lines) + "\n"
 
 
@@ -89,12 +94,12 @@ def plot(res: dict, path: Path) -> None:
     import matplotlib.pyplot as plt
 
     fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4))
-    xs = [100 * x for x in res["resolutions"]]
     for i, (label, m) in enumerate(res["models"].items()):
         for j, (f, rows) in enumerate(m["per_factor"].items()):
             style = dict(color=f"C{i}", ls=["-", "--", ":", "-."][j % 4], marker="o", label=f"{label}, x{f}")
-            a.plot(xs, [rows[f"{x:g}"]["psnr"] for x in res["resolutions"]], **style)
-            b.plot(xs, [rows[f"{x:g}"]["ms_median"] for x in res["resolutions"]], **style)
+            xf = [x for x in res["resolutions"] if f"{x:g}" in rows]
+            a.plot([100 * x for x in xf], [rows[f"{x:g}"]["psnr"] for x in xf], **style)
+            b.plot([100 * x for x in xf], [rows[f"{x:g}"]["ms_median"] for x in xf], **style)
     a.set(xlabel="resolution (%)", ylabel="PSNR (dB)", title="quality")
     b.set(xlabel="resolution (%)", ylabel="render time, median (ms)", title="price", yscale="log")
     a.grid(alpha=0.3)
@@ -111,8 +116,9 @@ def main(argv=None) -> int:
     ap.add_argument("--dataset", required=True)
     ap.add_argument("--max-width", type=int, default=None)
     ap.add_argument("--res", default="0.1,0.2,0.3,0.4,0.5")
-    ap.add_argument("--factors", default="1,2,3")
-    ap.add_argument("--views", type=int, default=None, help="the first N test views [default: all]")
+    ap.add_argument("--factors", default="1,2,3", help="comma-separated factors, each F or F:MAXRES (measured only "
+                    "up to that resolution)")
+    ap.add_argument("--views-every", type=int, default=1, help="every K-th test view [default: all]")
     ap.add_argument("--out", required=True)
     args = ap.parse_args(argv)
     sys.path.insert(0, str(REPO))
@@ -125,9 +131,14 @@ def main(argv=None) -> int:
             ap.error(f"{m!r}: give LABEL=PATH to an existing scene")
         models[label] = path
     res = [float(x) for x in args.res.split(",")]
-    factors = [int(x) for x in args.factors.split(",")]
+    factors = {}
+    for tok in args.factors.split(","):
+        f, _, top = tok.partition(":")
+        factors[int(f)] = float(top) if top else max(res)
+    if 1 not in factors:
+        ap.error("--factors must include 1 (the plain render the others are priced against)")
     t0 = time.time()
-    out = run(models, args.dataset, args.max_width, res, factors, args.views, lambda s: print(s, flush=True))
+    out = run(models, args.dataset, args.max_width, res, factors, args.views_every, lambda s: print(s, flush=True))
     out.update({"kind": "proxycodec.supersample", "dataset": args.dataset, "max_width": args.max_width,
                 "machine": machine_info(), "versions": versions(), "seed": None, "seconds": time.time() - t0,
                 "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
