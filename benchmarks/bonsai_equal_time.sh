@@ -4,8 +4,10 @@
 # density (--voxel-rule extent: a quarter of the anchors), each for the same wall-time budget on the same
 # machine, then evaluated on the 37 held-out views at 10%..100%, with the container and the 3DGS PLY's SPZ.
 #   benchmarks/bonsai_equal_time.sh [BUDGET_SECONDS] [OUT_DIR] [STEPS]
-# STEPS: a comma-separated subset of ours,3dgs,scaffold,fixedres,encode,extent,compare [default: all but extent,
-# in that order; extent fits, evaluates, encodes and evaluates its container].
+# STEPS: a comma-separated subset of ours,3dgs,scaffold,fixedres,encode,extent,compare,supersample [default: all
+# but extent and supersample, in that order; extent fits, evaluates, encodes and evaluates its container;
+# supersample prices --supersample 2 (every size) and 3 (up to 50%) for ours and 3DGS on every third held-out
+# view: benchmarks/supersample.py].
 # Re-runnable: a finished step (its output present) is skipped; an interrupted fit (ours or 3DGS) continues with
 # --resume (Ctrl-C writes its checkpoint; a SIGSTOPped step counts its pause, so resume with the budget plus the
 # pause). One training at a time (never two at once).
@@ -75,4 +77,10 @@ if want compare; then
   base=()
   [ -f "$OUT/3dgs_eval/eval.json" ] && base=(--baseline 3dgs)
   python "$HERE/compare_evals.py" "${args[@]}" "${base[@]}" "${sizes[@]}" --paper mipnerf360 --out "$OUT/compare"
+fi
+if want supersample; then
+  PROXYCODEC_THREADS=${THREADS:-2} python "$HERE/supersample.py" ours="$OUT/ours.ply" 3dgs="$OUT/3dgs.ply" \
+    --dataset "$DATA" --max-width 800 --res $RES --factors 1,2,3:0.5 --views-every 3 --out "$OUT/supersample" \
+    > "$OUT/supersample.log" 2>&1
+  tail -n 8 "$OUT/supersample.log"
 fi

@@ -123,6 +123,9 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     sys.path.insert(0, str(REPO))
     from proxycodec.bench import machine_info, versions
+    from proxycodec.threads import set_threads
+
+    threads = set_threads()  # $PROXYCODEC_THREADS, else the usable cores
 
     models = {}
     for m in args.models:
@@ -140,7 +143,7 @@ def main(argv=None) -> int:
     t0 = time.time()
     out = run(models, args.dataset, args.max_width, res, factors, args.views_every, lambda s: print(s, flush=True))
     out.update({"kind": "proxycodec.supersample", "dataset": args.dataset, "max_width": args.max_width,
-                "machine": machine_info(), "versions": versions(), "seed": None, "seconds": time.time() - t0,
+                "machine": machine_info(), "versions": versions(), "threads": threads, "seed": None, "seconds": time.time() - t0,
                 "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
                 "generated": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())})
     od = Path(args.out)
