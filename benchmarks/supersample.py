@@ -143,7 +143,8 @@ def main(argv=None) -> int:
     t0 = time.time()
     out = run(models, args.dataset, args.max_width, res, factors, args.views_every, lambda s: print(s, flush=True))
     out.update({"kind": "proxycodec.supersample", "dataset": args.dataset, "max_width": args.max_width,
-                "machine": machine_info(), "versions": versions(), "threads": threads, "seed": None, "seconds": time.time() - t0,
+                "machine": machine_info(), "versions": versions(), "threads": threads, "seed": None,
+                "seconds": time.time() - t0,
                 "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
                 "generated": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())})
     od = Path(args.out)
