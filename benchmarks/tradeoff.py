@@ -21,6 +21,8 @@ each step finishes, a re-run resumes):
 4b. the rate-distortion sweep: fits at the main budget with the rate term (``fit --lambda-rate``, ``RATE_LAMBDAS``),
    each encoded with the defaults (entropy model, learned grids) and evaluated: with the main fit (the default
    1e-4) they are the RD curve of the entropy model (issue #17);
+4c. the anchor density (bonsai: a scene with SfM points): ``fit --voxel-rule extent`` at the main budget, encoded with
+   the defaults, beside the default ``spacing`` (the main fit): what the finer anchors cost in iterations and bytes;
 5. the paper's ablations (lego) at a smaller reference width and a fixed number of iterations (``ABLATION``: 200 px,
    3000 iterations; iteration budgets give every fit the same length whatever the machine's load, which a 2-minute
    wall-time budget did not: two seeds of the default differed by 2.2 dB), each evaluated uncompressed (the
