@@ -57,6 +57,9 @@ def _stderr(msg: str) -> None:
                     "fitted to the scene (scene format 4); zstd: zstd alone (scene format 2); auto: the model where "
                     "it is smaller.")
 @encode_option("--entropy-iters", show_default=True, type=int, help="Iterations fitting the entropy model.")
+@encode_option("--positions", show_default=True, type=click.Choice(["delta", "octree"]),
+               help="Grid positions: per-axis deltas in Morton order (zstd), or an octree of them, binary "
+                    "arithmetic-coded (scene format 6: 40-60% fewer position bytes; older readers refuse it).")
 @encode_option("--lambda-rate", show_default=True, type=click.FloatRange(0.0),
                help="With distillation: weight of the rate term (noise quantisation, learned steps per channel).")
 @encode_option("--quant-cells", show_default=True, type=click.IntRange(0, 32),
@@ -96,7 +99,7 @@ def _stderr(msg: str) -> None:
 def encode(scene, out, weights, proxy_ratio, proxy_selection, cell_size, feature_bits, offset_bits, scaling_bits,
            weights_dtype, predict_offsets, max_cameras, drop_dead_offsets, predictor_context, predictor_iters, leaf_sample,
            zstd_level,
-           entropy, entropy_iters, lambda_rate, quant_cells, learned_steps, seed,
+           entropy, entropy_iters, positions, lambda_rate, quant_cells, learned_steps, seed,
            refit_predictor, distill, distill_threshold, distill_iters, distill_time_budget, distill_views,
            distill_full_share,
            distill_targets, images, keep_anchor_scene,
@@ -127,8 +130,8 @@ def encode(scene, out, weights, proxy_ratio, proxy_selection, cell_size, feature
                  feature_bits=feature_bits, offset_bits=offset_bits, scaling_bits=scaling_bits,
                  weights_dtype=weights_dtype, predict_offsets=predict_offsets, max_cameras=max_cameras,
                  predictor_context=predictor_context, predictor_iters=predictor_iters, leaf_sample=leaf_sample, zstd_level=zstd_level, seed=seed,
-                 entropy=entropy, entropy_iters=entropy_iters, lambda_rate=lambda_rate, quant_cells=quant_cells,
-                 learned_steps=learned_steps)
+                 entropy=entropy, entropy_iters=entropy_iters, positions=positions, lambda_rate=lambda_rate,
+                 quant_cells=quant_cells, learned_steps=learned_steps)
     if not p.is_dir() and splat_kind(p):
         from ..convert import convert_and_encode
         from .convert import make_config

@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from . import octree
 from .camera import Camera
 from .errors import ProxycodecError
 from .formats.container import Container, ContainerError, read_container
@@ -41,7 +42,12 @@ SCENE_FORMAT_ENTROPY = 4
 #: anchor's values is the channel's step times ``2^(level / 4)``, the level looked up by the anchor's position cell
 #: and whether it is a proxy). Written only when a scene has learned levels (``fit --quant-cells``).
 SCENE_FORMAT_LEVELS = 5
-SUPPORTED_SCENE_FORMATS = (1, 2, 3, 4, 5)
+#: 6: grid positions octree-coded (``meta["positions"]["coding"] == "octree"``, ``proxycodec.octree``); everything
+#: formats 2-5 may hold (a decoder variant, entropy coding, per-cell levels) as the metadata says. Written only for
+#: octree positions (``encode --positions octree``), so that a reader that predates them refuses the file.
+SCENE_FORMAT_OCTREE = 6
+SUPPORTED_SCENE_FORMATS = (1, 2, 3, 4, 5, 6)
+POSITION_CODINGS = ("delta", "octree")
 FLOAT_BITS = 32  # "bits" value meaning: store float32, no quantisation
 PREDICT_CHUNK = 65536  # leaves per predictor batch (fixed: the same batches in encoder and decoder)
 MAX_ANCHORS = 1 << 28
@@ -359,10 +365,13 @@ class PositionCoding:
     info: dict  # meta["positions"]
 
 
-def encode_positions(pos: np.ndarray, voxel: float) -> PositionCoding:
-    """Exact grid coordinates when a rule reproduces every float32 position (Morton order, per-axis deltas in the
-    smallest integer type), else the float32 positions themselves (lossless) in the Morton order of their voxels.
-    One order serves every per-anchor section."""
+def encode_positions(pos: np.ndarray, voxel: float, coding: str = "delta") -> PositionCoding:
+    """Exact grid coordinates when a rule reproduces every float32 position, in Morton order: per-axis deltas in the
+    smallest integer type ("delta"), or ``coding="octree"`` an octree of them (``proxycodec.octree``; distinct
+    positions only, else deltas); off-grid, the float32 positions themselves (lossless) in the Morton order of their
+    voxels. One order serves every per-anchor section."""
+    if coding not in POSITION_CODINGS:
+        raise ProxycodecError(f"position coding {coding!r}: must be one of {', '.join(POSITION_CODINGS)}")
     grid = grid_positions(pos, voxel)
     if grid is not None:
         ii, pinfo = grid
@@ -370,9 +379,12 @@ def encode_positions(pos: np.ndarray, voxel: float) -> PositionCoding:
         rel = ii - origin
         order = morton_order(rel, rel[:, 0], rel[:, 1], rel[:, 2])
         rel = rel[order]
+        base = {**pinfo, "origin": [int(v) for v in origin], "order": "morton"}
+        if coding == "octree" and octree.can_code(rel):
+            secs, depth = octree.encode(rel)
+            return PositionCoding(order, secs, {**base, "coding": "octree", "depth": depth, "coder": octree.CODER})
         deltas = np.diff(rel, axis=0, prepend=np.zeros((1, 3), np.int64)).T  # [3, M]
-        return PositionCoding(order, {GRID: small_int(np.ascontiguousarray(deltas))},
-                              {**pinfo, "origin": [int(v) for v in origin], "order": "morton", "coding": "delta"})
+        return PositionCoding(order, {GRID: small_int(np.ascontiguousarray(deltas))}, {**base, "coding": "delta"})
     lo = pos.astype(np.float64).min(0)
     cell = np.floor((pos.astype(np.float64) - lo) / voxel).astype(np.int64)
     order = morton_order(cell, pos[:, 0], pos[:, 1], pos[:, 2])
@@ -483,7 +495,8 @@ def scene_metadata(positions: PositionCoding, proxy_mask: np.ndarray, quantized:
     M, P = int(len(proxy_mask)), int(proxy_mask.sum())
     return {
         "kind": SCENE_KIND,
-        "scene_format": (SCENE_FORMAT_LEVELS if any("levels" in v for v in quantized.quant.values())
+        "scene_format": (SCENE_FORMAT_OCTREE if positions.info.get("coding") == "octree"
+                         else SCENE_FORMAT_LEVELS if any("levels" in v for v in quantized.quant.values())
                          else SCENE_FORMAT_VARIANT if decoder_config.variant() else SCENE_FORMAT),
         "anchors": {"count": M, "proxies": P, "leaves": M - P, "feat_dim": feat_dim, "n_offsets": n_offsets},
         "voxel_size": voxel_size,
@@ -648,9 +661,16 @@ def stored_anchors(meta: dict, sections: dict[str, np.ndarray], err: ErrorFactor
         raise err(f"bad voxel size {voxel}")
     # positions
     pinfo = meta["positions"]
+    fmt = meta.get("scene_format")
+    octree_coded = pinfo.get("coding") == "octree"
+    if octree_coded != (fmt == SCENE_FORMAT_OCTREE):
+        raise err("octree-coded positions need scene format 6, and format 6 needs them")
     if pinfo["mode"] == "grid":
-        d = _section(sections, GRID, err, (3, M), "i").astype(np.int64)
-        rel = np.cumsum(d, axis=1).T
+        if octree_coded:
+            rel = octree.decode(sections, pinfo["depth"], M, err)
+        else:
+            d = _section(sections, GRID, err, (3, M), "i").astype(np.int64)
+            rel = np.cumsum(d, axis=1).T
         origin = np.asarray([int(v) for v in pinfo["origin"]], dtype=np.int64)
         if origin.shape != (3,):
             raise err("bad grid origin")
@@ -675,12 +695,12 @@ def stored_anchors(meta: dict, sections: dict[str, np.ndarray], err: ErrorFactor
     if int(mask.sum()) != P:
         raise err(f"proxy mask marks {int(mask.sum())} proxies, metadata says {P}")
     q = meta["quant"]
-    fmt = meta.get("scene_format")
-    if ("entropy" in meta and fmt not in (SCENE_FORMAT_ENTROPY, SCENE_FORMAT_LEVELS)) or \
+    if ("entropy" in meta and fmt not in (SCENE_FORMAT_ENTROPY, SCENE_FORMAT_LEVELS, SCENE_FORMAT_OCTREE)) or \
             (fmt == SCENE_FORMAT_ENTROPY and "entropy" not in meta):
-        raise err("entropy-coded sections need scene format 4 or 5 and its 'entropy' metadata")
-    if (fmt == SCENE_FORMAT_LEVELS) != any(isinstance(v, dict) and "levels" in v for v in q.values()):
-        raise err("per-cell quantisation levels need scene format 5, and format 5 needs them")
+        raise err("entropy-coded sections need scene format 4, 5 or 6 and its 'entropy' metadata")
+    levels = any(isinstance(v, dict) and "levels" in v for v in q.values())
+    if (levels and fmt not in (SCENE_FORMAT_LEVELS, SCENE_FORMAT_OCTREE)) or (fmt == SCENE_FORMAT_LEVELS and not levels):
+        raise err("per-cell quantisation levels need scene format 5 or 6, and format 5 needs them")
     if "entropy" in meta:
         if meta["offsets"] != "stored":
             raise err("entropy coding covers stored offsets only")

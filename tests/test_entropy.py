@@ -1,5 +1,5 @@
 """The conditional entropy model (scene format 4): exact integer nets, fixed tables, lossless round trips through
-both decoders, golden files of formats 1, 2, 4 and 5, hostile entropy sections, and the rate term of training."""
+both decoders, golden files of formats 1, 2, 4, 5 and 6, hostile entropy sections, and the rate term of training."""
 
 from __future__ import annotations
 
@@ -254,11 +254,11 @@ def test_laplace_bits_match_the_integer_tables():
 
 
 # ------------------------------------------------------------------------------------------------ golden files
-@pytest.mark.parametrize("name", ["scene_v1.pxc", "scene_v2.pxc", "scene_v4.pxc", "scene_v5.pxc"])
+@pytest.mark.parametrize("name", ["scene_v1.pxc", "scene_v2.pxc", "scene_v4.pxc", "scene_v5.pxc", "scene_v6.pxc"])
 def test_golden_containers_decode_to_their_committed_hashes(name):
-    """The cross-machine check: committed containers of scene formats 1, 2, 4 and 5 decode to committed hashes of
-    their stored arrays (formats 4 and 5 through the entropy model and the ANS coder; 5 with per-cell levels), in
-    both decoders."""
+    """The cross-machine check: committed containers of scene formats 1, 2, 4, 5 and 6 decode to committed hashes of
+    their stored arrays (formats 4 to 6 through the entropy model and the ANS coder; 5 with per-cell levels; 6 with
+    octree-coded positions), in both decoders."""
     want = json.loads((GOLDEN / "hashes.json").read_text())
     path = GOLDEN / name
     assert stored_digest(path) == want[name]
