@@ -971,7 +971,9 @@ def _scene_stats(meta: dict, infos, size: int) -> dict:
         "scene_format": meta.get("scene_format"), "anchors": M, "proxies": a.get("proxies"),
         "leaves": a.get("leaves"), "bits_per_anchor": 8.0 * size / M if M else None,
         "source_bytes": src, "ratio": (src / size) if src else None, "bytes_by_group": groups,
-        "positions": meta.get("positions", {}).get("mode"), "offsets": meta.get("offsets"),
+        "positions": " ".join(str(meta.get("positions", {}).get(k)) for k in ("mode", "coding")
+                              if meta.get("positions", {}).get(k) is not None),
+        "offsets": meta.get("offsets"),
         "proxy": meta.get("proxy"), "quant_bits": {k: v.get("bits") for k, v in meta.get("quant", {}).items()},
         "quant_levels": {k: {"cells": v["levels"].get("cells"), "entries": v["levels"].get("entries")}
                          for k, v in meta.get("quant", {}).items()
