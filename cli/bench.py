@@ -18,8 +18,8 @@ from .common import config_option, user_errors
               help="100% reference width [default: the one the scene was fit at].")
 @click.option("--test-every", type=int, default=8, show_default=True, help="COLMAP: every N-th image is a test view.")
 @click.option("--sweeps", default=None,
-              help="Comma-separated subset of proxy_ratio, leaf_sample, bits, zstd_level, predictor_blocks "
-                   "[default: all].")
+              help="Comma-separated subset of proxy_ratio, leaf_sample, bits, zstd_level, predictor_blocks, entropy, "
+                   "positions [default: all].")
 @click.option("--in-process", is_flag=True,
               help="Run every step in this process (faster start; peak RSS is then the whole run's, not per step).")
 @click.option("--fresh", is_flag=True, help="Ignore the results of an earlier run in the folder (default: resume).")

@@ -302,13 +302,14 @@ def test_encode_sweep_plan_centres_on_the_defaults():
 
     plan = encode_sweep_plan(quick=True)
     assert {n for n, _, _ in plan} == {"proxy_ratio", "leaf_sample", "bits", "zstd_level", "predictor_blocks",
-                                       "entropy"}
+                                       "entropy", "positions"}
     for name, _, knobs in plan:
         assert knobs["use_fitted"] is False
         EncodeConfig(**knobs).check()
     ids = {knob_id(k) for _, _, k in plan}
     assert "encode default (refit)" in ids and "encode proxy_ratio=0.1" in ids
     assert {"encode entropy=zstd", "encode entropy=model"} <= ids  # the default is "auto"
+    assert "encode positions=octree" in ids  # the default is "delta"
     bits = [k for n, _, k in plan if n == "bits"]
     assert bits and all(k["learned_steps"] is False for k in bits)  # else inert on a rate-trained scene
     assert "encode learned_steps=False, offset_bits=6" in ids
@@ -339,13 +340,14 @@ def test_bench_quick_end_to_end_in_process(tiny, tmp_path):
     data, ply = tiny
     out = tmp_path / "b"
     r = CliRunner().invoke(_cli(), ["bench", str(ply), str(data), "--quick", "-o", str(out), "--in-process",
-                                    "--views", "1", "--sweeps", "proxy_ratio,zstd_level", "--predictor-iters", "100",
+                                    "--views", "1", "--sweeps", "proxy_ratio,zstd_level,positions",
+                                    "--predictor-iters", "100",
                                     "--distill-iters", "5"])
     assert r.exit_code == 0, r.output
     res = _check_outputs(out)
     pts = {p["id"]: p for p in res["points"]}
     sweeps = {n for p in res["points"] for n in (p.get("sweeps") or {})}
-    assert sweeps == {"proxy_ratio", "zstd_level"}  # (every sweep's plan: test_encode_sweep_plan_...)
+    assert sweeps == {"proxy_ratio", "zstd_level", "positions"}  # (every sweep's plan: test_encode_sweep_plan_...)
     d = pts["encode default"]
     assert d["default"] and d["bytes"] > 0 and math.isfinite(d["psnr_avg"]) and d["views"] == 1
     assert set(d["render_ms"]) == {f"{0.1 * k:.1f}".rstrip("0").rstrip(".") for k in range(1, 11)}
@@ -353,6 +355,9 @@ def test_bench_quick_end_to_end_in_process(tiny, tmp_path):
     z3 = pts["encode zstd_level=3"]
     assert z3["quality_from"] in ("encode default", "encode default (refit)") and z3["decode_seconds"] is not None
     assert z3["psnr_avg"] == pts["encode default (refit)"]["psnr_avg"]
+    oc = pts["encode positions=octree"]  # lossless: the same decoded scene, so the same evaluation, other bytes
+    assert oc["quality_from"] in ("encode default", "encode default (refit)") and oc["bytes"] != z3["bytes"]
+    assert oc["psnr_avg"] == pts["encode default (refit)"]["psnr_avg"]
     assert any(p["pareto"] for p in res["points"])
     md = (out / "bench.md").read_text()
     assert "### Sweep: proxy_ratio" in md and "Pareto" in md and "Render time per resolution" in md

@@ -70,19 +70,32 @@ def _step_explicit(a: dict) -> dict:
             "bytes": Path(a["out"]).stat().st_size}
 
 
-def _content_key(path: Path) -> str:
-    """Hash of everything a decoder reads from a scene container except the encoder's zstd level."""
-    from ..formats.container import read_container
+#: Metadata that says how the content is coded, not what it is: encodes differing only there decode to the same scene
+CODING_META = ("encoder", "entropy", "scene_format", "positions", "weights_layout", "quant")
 
-    c = read_container(path)
+
+def _content_key(path: Path) -> str:
+    """Hash of the scene a container decodes to (its stored anchors dequantised, the split, the weights, the rest of
+    the metadata), whatever coded it: encodes that differ only in the zstd level, the entropy coding or the position
+    coding get one key, and share one quality evaluation."""
+    from ..sections import read_scene_container, stored_anchors
+
+    c = read_scene_container(path)  # weights unpacked
+
+    def err(m):
+        return ProxycodecError(m, path)
+
+    a = stored_anchors(c.meta, dict(c.arrays), err)
     h = hashlib.sha256()
-    meta = dict(c.meta)
-    meta.pop("encoder", None)
+    meta = {k: v for k, v in c.meta.items() if k not in CODING_META}
     h.update(json.dumps(meta, sort_keys=True).encode())
-    for name in sorted(c.arrays):
-        arr = np.ascontiguousarray(c.arrays[name])
-        h.update(f"{name}|{arr.dtype.str}|{arr.shape}".encode())
-        h.update(arr.tobytes())
+    arrays = {"anchors": [a.positions, a.features, a.offsets, a.scalings, a.proxy_mask]}
+    arrays.update({k: [v] for k, v in c.arrays.items() if k.startswith(("decoder/", "predictor/"))})
+    for name in sorted(arrays):
+        for arr in arrays[name]:
+            arr = np.ascontiguousarray(arr)
+            h.update(f"{name}|{arr.dtype.str}|{arr.shape}".encode())
+            h.update(arr.tobytes())
     return h.hexdigest()
 
 
