@@ -76,6 +76,29 @@ def test_bad_factors_are_our_error(bad):
         render_supersampled(PixelCentres(), tiny_model().cameras[0], 0.5, bad)
 
 
+def test_a_render_too_large_to_supersample_is_refused_before_rendering():
+    from proxycodec.render import MAX_SUPERSAMPLED_SIDE
+
+    class Asked(Exception):
+        pass
+
+    class Recorder:
+        calls = []
+
+        def render(self, camera, xi=1.0, *, backend="auto", size=None):
+            self.calls.append((xi, size))
+            raise Asked  # what would be rendered is all this test needs
+
+    model = Recorder()
+    cam = tiny_model().cameras[0].sized(4096, 3072)
+    with pytest.raises(ProxycodecError, match="over 16384 a side"):
+        render_supersampled(model, cam, 2.0, 3)  # 8192 x 6144, x3
+    assert model.calls == []
+    with pytest.raises(Asked):
+        render_supersampled(model, cam, 1.0, 4)  # exactly the limit
+    assert model.calls == [(2.0, (MAX_SUPERSAMPLED_SIDE, 12288))]
+
+
 def test_cli_render_and_decode_supersample(tmp_path):
     from PIL import Image
 

@@ -144,6 +144,9 @@ __all__ = ["GateConfig", "Projected", "RenderResult", "project", "project_gaussi
 
 #: The largest supersampling factor ``render_supersampled`` accepts (8 x 8 renders per output pixel).
 MAX_SUPERSAMPLE = 8
+#: The largest side of the image ``render_supersampled`` renders before filtering (16384 px: 3.2 GB of float32 RGB at
+#: 16384 x 16384, where a reference camera's 2x render at 8x would otherwise ask for more)
+MAX_SUPERSAMPLED_SIDE = 16384
 
 
 def check_supersample(factor) -> int:
@@ -172,6 +175,10 @@ def render_supersampled(model, camera, xi: float, factor: int = 1, *, backend: s
     if factor == 1:
         return model.render(camera, xi, backend=backend)
     small = camera.scaled(check_xi(xi))
+    if max(small.width, small.height) * factor > MAX_SUPERSAMPLED_SIDE:
+        raise ProxycodecError(f"supersampling {small.width}x{small.height} by {factor} renders "
+                              f"{small.width * factor}x{small.height * factor} pixels, over {MAX_SUPERSAMPLED_SIDE} a "
+                              "side: lower the factor or the resolution")
     r = model.render(camera, min(factor * float(xi), XI_MAX), backend=backend,
                      size=(small.width * factor, small.height * factor))
 
