@@ -40,23 +40,22 @@ SYNCING = {"nonzero", "masked_select", "unique", "_unique2", "item", "_local_sca
 
 def count_ops(step, n: int) -> dict:
     """Run ``step`` ``n`` times under a dispatch mode -> per-step operation counts, by op name and by source line."""
-    from torch.utils._python_dispatch import TorchDispatchMode
+    from proxycodec.bench.ops import dispatch_counter
 
-    by_op, by_line = collections.Counter(), collections.Counter()
+    by_line = collections.Counter()
 
-    class Counter(TorchDispatchMode):
-        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
-            by_op[func.overloadpacket.__name__] += 1
-            own = [f for f in traceback.extract_stack(limit=40) if "/proxycodec/" in f.filename.replace("\\", "/")]
-            f = own[-1] if own else None
-            by_line[f"{f.filename.replace(chr(92), '/').split('/proxycodec/')[-1]}:{f.lineno} {f.name}" if f
-                    else "(outside proxycodec)"] += 1
-            return func(*args, **(kwargs or {}))
+    def where(_name):
+        own = [f for f in traceback.extract_stack(limit=40) if "/proxycodec/" in f.filename.replace("\\", "/")
+               and not f.filename.replace("\\", "/").endswith("/bench/ops.py")]  # the counter's own frame
+        f = own[-1] if own else None
+        by_line[f"{f.filename.replace(chr(92), '/').split('/proxycodec/')[-1]}:{f.lineno} {f.name}" if f
+                else "(outside proxycodec)"] += 1
 
     t = time.perf_counter()
-    with Counter():
+    with dispatch_counter(where) as counter:
         for _ in range(n):
             step()
+    by_op = counter.counts
     seconds = (time.perf_counter() - t) / n
     total = sum(by_op.values())
     return {"ops_per_step": round(total / n, 1),

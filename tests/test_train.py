@@ -603,27 +603,17 @@ def test_a_training_step_synchronises_three_times(data):
     """What makes a GPU wait for the host: data-dependent sizes and values read back. A stage-1 and a stage-2 step
     (rate term on) each have three (the frustum test, the decoder's live anchors and live slots; the CPU path's
     projection adds none), so no ``.item()``, no second frustum test and no host read of a loss creeps back in."""
-    from torch.utils._python_dispatch import TorchDispatchMode
-
+    from proxycodec.bench.ops import dispatch_counter
     from proxycodec.train import Trainer
 
     syncing = {"nonzero", "_local_scalar_dense", "is_nonzero", "masked_select", "unique", "_unique2", "item"}
-    seen = []
-
-    class Count(TorchDispatchMode):
-        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
-            if func.overloadpacket.__name__ in syncing:
-                seen.append(func.overloadpacket.__name__)
-            return func(*args, **(kwargs or {}))
-
     tr = Trainer(data, small_config(iters=20, lambda_rate=1e-4, update_interval=1000), "tiny")
     per_stage = {}
     while tr.stage < 2 or 2 not in per_stage:
         stage = tr.stage
-        seen.clear()
-        with Count():
+        with dispatch_counter() as c:
             tr.train_step()
         if tr.stage == stage:  # not the step that entered stage 2 (its setup reads the host on purpose)
-            per_stage.setdefault(stage, list(seen))
+            per_stage.setdefault(stage, [n for n in c.names if n in syncing])
     assert tr.rate is not None
     assert per_stage == {1: ["nonzero"] * 3, 2: ["nonzero"] * 3}, per_stage
