@@ -156,3 +156,22 @@ def test_bad_coding_name_and_cli(tmp_path):
     assert read_container(tmp_path / "s.pxc").meta["scene_format"] == 6
     r = CliRunner().invoke(cli, ["stats", str(tmp_path / "s.pxc")])
     assert r.exit_code == 0 and "anchors/octree" in r.output and "positions grid octree" in r.output, r.output
+
+
+def test_flipped_bytes_fail_alike_in_both_decoders(pair, tmp_path):
+    """Every byte flip of an octree container is refused (our error), or decodes, the same way in both readers."""
+
+    def outcome(fn, p):
+        try:
+            fn(p)
+        except ContainerError as e:
+            return "ContainerError", str(e)
+        return "ok", ""
+
+    data = pair[2].read_bytes()
+    for i, pos in enumerate(list(range(0, len(data), max(1, len(data) // 60))) + [len(data) - 1]):
+        flipped = bytearray(data)
+        flipped[pos] ^= 1 << (i % 8)
+        p = tmp_path / f"flip{i}.pxc"
+        p.write_bytes(bytes(flipped))
+        assert outcome(lite.decode, p) == outcome(codec.decode, p), pos
