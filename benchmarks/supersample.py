@@ -12,6 +12,9 @@ render), against the same box-filtered photos as ``eval``. A 3DGS PLY renders on
 
 Writes ``supersample.json`` (machine, versions, peak RSS, every figure per view), ``supersample.md`` (the table) and
 ``supersample.png`` (PSNR and time against resolution) in ``--out``; prints the table.
+
+``--embedding-at XI:E1,E2,...`` adds a diagnostic for anchor scenes: the plain render at resolution XI with the
+resolution embedding told E instead (what the embedding, rather than the sampling, does to that size).
 """
 
 from __future__ import annotations
@@ -59,6 +62,34 @@ def run(models: dict[str, str], dataset: str, max_width: int | None, res: list[f
             log(f"{label} x{f}: " + "  ".join(f"{k}: {v['psnr']:.2f} dB {v['ms_median']:.0f} ms"
                                               for k, v in rows.items()) + f"  ({time.perf_counter() - t0:.0f} s)")
         out["models"][label] = {"path": str(path), "per_factor": per}
+    return out
+
+
+def embedding_probe(models: dict[str, str], dataset: str, max_width: int | None, xi: float, embeds: list[float],
+                    views_every: int, log) -> dict:
+    """Per anchor scene: mean PSNR of the plain render at ``xi`` with the embedding told each of ``embeds``."""
+    import torch
+
+    from proxycodec.formats.datasets import load_dataset
+    from proxycodec.metrics import psnr
+    from proxycodec.scenes import load_any
+
+    data = load_dataset(dataset, max_width=max_width)
+    views = list(data.test_indices)[::views_every]
+    out = {}
+    for label, path in models.items():
+        model = load_any(path)
+        if getattr(model.scene, "num_anchors", None) is None:
+            continue  # plain 3DGS has no embedding
+        vals = {e: [] for e in embeds}
+        with torch.no_grad():
+            for v in views:
+                gt = data.load_image(v, xi)
+                for e in embeds:
+                    img = model.render(data.cameras[v], e, size=(gt.shape[1], gt.shape[0])).image.clamp(0, 1)
+                    vals[e].append(psnr(img, gt))
+        out[label] = {f"{e:g}": statistics.fmean(x) for e, x in vals.items()}
+        log(f"{label} at {xi:g}, embedding told: " + "  ".join(f"{e}: {p:.2f} dB" for e, p in out[label].items()))
     return out
 
 
@@ -119,6 +150,8 @@ def main(argv=None) -> int:
     ap.add_argument("--factors", default="1,2,3", help="comma-separated factors, each F or F:MAXRES (measured only "
                     "up to that resolution)")
     ap.add_argument("--views-every", type=int, default=1, help="every K-th test view [default: all]")
+    ap.add_argument("--embedding-at", default=None, metavar="XI:E1,E2,...",
+                    help="also render resolution XI plainly with the embedding told each E (anchor scenes)")
     ap.add_argument("--out", required=True)
     args = ap.parse_args(argv)
     sys.path.insert(0, str(REPO))
@@ -142,6 +175,11 @@ def main(argv=None) -> int:
         ap.error("--factors must include 1 (the plain render the others are priced against)")
     t0 = time.time()
     out = run(models, args.dataset, args.max_width, res, factors, args.views_every, lambda s: print(s, flush=True))
+    if args.embedding_at:
+        xi, _, es = args.embedding_at.partition(":")
+        out["embedding_probe"] = {"xi": float(xi), "psnr": embedding_probe(
+            models, args.dataset, args.max_width, float(xi), [float(e) for e in es.split(",")], args.views_every,
+            lambda s: print(s, flush=True))}
     out.update({"kind": "proxycodec.supersample", "dataset": args.dataset, "max_width": args.max_width,
                 "machine": machine_info(), "versions": versions(), "threads": threads, "seed": None,
                 "seconds": time.time() - t0,
@@ -151,6 +189,11 @@ def main(argv=None) -> int:
     od.mkdir(parents=True, exist_ok=True)
     (od / "supersample.json").write_text(json.dumps(out, indent=1))
     md = markdown(out)
+    if "embedding_probe" in out:
+        ep = out["embedding_probe"]
+        md += (f"\nThe plain render at {ep['xi']:g} with the embedding told another resolution (PSNR dB):\n\n"
+               + "\n".join(f"- {label}: " + ", ".join(f"told {e}: {p:.2f}" for e, p in vals.items())
+                           for label, vals in ep["psnr"].items()) + "\n")
     (od / "supersample.md").write_text(f"# Supersampling: {args.dataset}\n\n{md}")
     plot(out, od / "supersample.png")
     print(md)
