@@ -560,7 +560,9 @@ def _entropy_code(sections: dict, meta: dict, pos_sorted: np.ndarray, voxel: flo
     emeta["zstd_bytes"] = zstd_bytes  # what zstd alone would store for the same sections
     emeta["hidden"], emeta["iters"] = cfg.entropy_hidden, cfg.entropy_iters
     meta["entropy"] = emeta
-    if meta["scene_format"] not in (SCENE_FORMAT_LEVELS, SCENE_FORMAT_OCTREE):  # formats 5 and 6 cover both codings
+    if meta["scene_format"] == SCENE_FORMAT_OCTREE:  # format 6 lists it
+        meta["features"] = sorted(set(meta["features"]) | {"entropy"})
+    elif meta["scene_format"] != SCENE_FORMAT_LEVELS:  # format 5 covers both codings
         meta["scene_format"] = SCENE_FORMAT_ENTROPY
     out = {k: v for k, v in sections.items() if k not in names}
     out.update(coded)

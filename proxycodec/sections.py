@@ -42,10 +42,12 @@ SCENE_FORMAT_ENTROPY = 4
 #: anchor's values is the channel's step times ``2^(level / 4)``, the level looked up by the anchor's position cell
 #: and whether it is a proxy). Written only when a scene has learned levels (``fit --quant-cells``).
 SCENE_FORMAT_LEVELS = 5
-#: 6: grid positions octree-coded (``meta["positions"]["coding"] == "octree"``, ``proxycodec.octree``); everything
-#: formats 2-5 may hold (a decoder variant, entropy coding, per-cell levels) as the metadata says. Written only for
-#: octree positions (``encode --positions octree``), so that a reader that predates them refuses the file.
+#: 6: lists what the file uses in ``meta["features"]`` (sorted, from ``SCENE_FEATURES``): "octree" (grid positions
+#: octree-coded, ``proxycodec.octree``), "entropy" (format 4's coding), "levels" (format 5's), "variant" (format
+#: 3's). A reader refuses a feature it does not know ("upgrade"), so later features need no new number. Written only
+#: for files that use a feature formats 2-5 cannot say (octree positions: ``encode --positions octree``).
 SCENE_FORMAT_OCTREE = 6
+SCENE_FEATURES = ("entropy", "levels", "octree", "variant")
 SUPPORTED_SCENE_FORMATS = (1, 2, 3, 4, 5, 6)
 POSITION_CODINGS = ("delta", "octree")
 FLOAT_BITS = 32  # "bits" value meaning: store float32, no quantisation
@@ -493,11 +495,15 @@ def scene_metadata(positions: PositionCoding, proxy_mask: np.ndarray, quantized:
     quantisation, offsets mode, network configurations, cameras, background) plus ``provenance`` (how the encoder
     made it: training, proxy selection, source, encoder; JSON values, stored as given)."""
     M, P = int(len(proxy_mask)), int(proxy_mask.sum())
+    octree_coded = positions.info.get("coding") == "octree"
+    levels = any("levels" in v for v in quantized.quant.values())
     return {
         "kind": SCENE_KIND,
-        "scene_format": (SCENE_FORMAT_OCTREE if positions.info.get("coding") == "octree"
-                         else SCENE_FORMAT_LEVELS if any("levels" in v for v in quantized.quant.values())
+        "scene_format": (SCENE_FORMAT_OCTREE if octree_coded
+                         else SCENE_FORMAT_LEVELS if levels
                          else SCENE_FORMAT_VARIANT if decoder_config.variant() else SCENE_FORMAT),
+        **({"features": sorted({"octree"} | ({"levels"} if levels else set())
+                               | ({"variant"} if decoder_config.variant() else set()))} if octree_coded else {}),
         "anchors": {"count": M, "proxies": P, "leaves": M - P, "feat_dim": feat_dim, "n_offsets": n_offsets},
         "voxel_size": voxel_size,
         "bounds": np.asarray(bounds, dtype=np.float64).tolist(),
@@ -662,9 +668,17 @@ def stored_anchors(meta: dict, sections: dict[str, np.ndarray], err: ErrorFactor
     # positions
     pinfo = meta["positions"]
     fmt = meta.get("scene_format")
+    features = meta.get("features") if fmt == SCENE_FORMAT_OCTREE else None
+    if fmt == SCENE_FORMAT_OCTREE:
+        if not (isinstance(features, list) and all(isinstance(f, str) for f in features)):
+            raise err("scene format 6 needs its list of 'features'")
+        unknown = sorted(set(features) - set(SCENE_FEATURES))
+        if unknown:
+            raise err(f"scene feature(s) {', '.join(map(repr, unknown))} not supported by this proxycodec (supports "
+                      f"{', '.join(SCENE_FEATURES)}); upgrade proxycodec")
     octree_coded = pinfo.get("coding") == "octree"
-    if octree_coded != (fmt == SCENE_FORMAT_OCTREE):
-        raise err("octree-coded positions need scene format 6, and format 6 needs them")
+    if octree_coded and fmt != SCENE_FORMAT_OCTREE:
+        raise err("octree-coded positions need scene format 6")
     if pinfo["mode"] == "grid":
         if octree_coded:
             rel = octree.decode(sections, pinfo["depth"], M, err)
@@ -729,6 +743,11 @@ def stored_anchors(meta: dict, sections: dict[str, np.ndarray], err: ErrorFactor
         raise err("network configurations do not match the anchors' feature/offset sizes")
     if pcfg.predict_offsets != (offsets_mode == "predicted"):
         raise err("predictor configuration disagrees with the offsets mode")
+    if features is not None:
+        used = {"entropy": "entropy" in meta, "levels": levels, "octree": octree_coded, "variant": bool(dcfg.variant())}
+        if set(features) != {k for k, v in used.items() if v}:
+            raise err(f"scene features {sorted(features)} do not match what the file uses "
+                      f"({sorted(k for k, v in used.items() if v)})")
     # [D] row-major, as a PLY-loaded scene is: the section layouts are channel-major, and transposed views made every
     # render gather anchors across strides (measured on bonsai: +30 ms per view at any resolution)
     c = np.ascontiguousarray

@@ -47,7 +47,7 @@ def main(names=NAMES) -> None:
         rel = np.cumsum(c.arrays[GRID].astype(np.int64), axis=1).T
         secs, depth = octree.encode(rel)
         arrays = {**{k: v for k, v in c.arrays.items() if k != GRID}, **secs}
-        meta = {**c.meta, "scene_format": 6,
+        meta = {**c.meta, "scene_format": 6, "features": ["entropy", "octree"],
                 "positions": {**c.meta["positions"], "coding": "octree", "depth": depth, "coder": octree.CODER}}
         write_container(HERE / "scene_v6.pxc", meta, arrays, level=19,
                         raw_sections=frozenset({entropy.STREAM, octree.STREAM}))
