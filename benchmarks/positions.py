@@ -5,8 +5,8 @@
 For each container with grid positions, its anchors' grid coordinates are coded both ways (``sections.encode_positions``
 with ``coding="delta"`` then zstd at the container's level, and ``coding="octree"``) and decoded back
 (``octree.decode``; the deltas' cumulative sum): bytes, and median encode / decode seconds over the repeats, measured
-in the same run. Lossless both ways (checked). Writes ``positions.json`` (machine, versions, every figure, peak RSS)
-and ``positions.md``; prints the table.
+in the same run. Lossless both ways (checked). Writes ``positions.json`` (machine, versions, every figure, peak RSS),
+``positions.md`` and ``positions.png`` (bytes per anchor and milliseconds, both codings); prints the table.
 """
 
 from __future__ import annotations
@@ -68,6 +68,31 @@ def measure(path: Path, repeats: int) -> dict:
     return out
 
 
+def plot(rows: list[dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = [r for r in rows if "skipped" not in r]
+    names = [Path(r["path"]).stem for r in rows]
+    x = np.arange(len(rows))
+    fig, (a, b) = plt.subplots(1, 2, figsize=(10, 3.8))
+    for j, coding in enumerate(("delta", "octree")):
+        a.bar(x + 0.4 * j, [8 * r[coding]["bytes"] / r["anchors"] for r in rows], 0.4, label=coding)
+        b.bar(x + 0.4 * j, [r[coding]["encode_ms"] + r[coding]["decode_ms"] for r in rows], 0.4, label=coding)
+    for ax, lab in ((a, "bits per anchor"), (b, "encode + decode (ms, median)")):
+        ax.set_xticks(x + 0.2, names, fontsize=8)
+        ax.set_ylabel(lab)
+        ax.grid(alpha=0.3, axis="y")
+        ax.legend(fontsize=8)
+    a.set_title("position bytes")
+    b.set_title("their price in time")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("containers", nargs="+", type=Path)
@@ -98,8 +123,9 @@ def main(argv=None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "positions.json").write_text(json.dumps(res, indent=1))
     (args.out / "positions.md").write_text("# Position codings\n\n" + md)
+    plot(rows, args.out / "positions.png")
     print(md)
-    print(f"wrote {args.out}/positions.json, positions.md")
+    print(f"wrote {args.out}/positions.json, positions.md, positions.png")
     return 0
 
 
