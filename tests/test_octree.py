@@ -170,13 +170,7 @@ def test_bad_coding_name_and_cli(tmp_path):
 
 def test_flipped_bytes_fail_alike_in_both_decoders(pair, tmp_path):
     """Every byte flip of an octree container is refused (our error), or decodes, the same way in both readers."""
-
-    def outcome(fn, p):
-        try:
-            fn(p)
-        except ContainerError as e:
-            return "ContainerError", str(e)
-        return "ok", ""
+    from test_decode_lite import _outcome as outcome
 
     data = pair[2].read_bytes()
     for i, pos in enumerate(list(range(0, len(data), max(1, len(data) // 60))) + [len(data) - 1]):
