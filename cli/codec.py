@@ -367,7 +367,9 @@ def stats(file, as_json) -> None:
         if s["trailing_bytes"]:
             click.echo(f"  {'trailing':10s} {s['trailing_bytes']:12,} B")
         return
-    fmt = f" (scene format {s['scene_format']})" if s.get("scene_format") is not None else ""
+    feats = (s.get("metadata") or {}).get("features") if isinstance(s.get("metadata"), dict) else None
+    fmt = (f" (scene format {s['scene_format']}" + (f": {', '.join(map(str, feats))}" if isinstance(feats, list) else "")
+           + ")") if s.get("scene_format") is not None else ""
     click.echo(f"{s['file']}: proxycodec container v{s['format_version']}, kind {s['kind']}{fmt}, "
                f"{s['file_bytes']:,} B")
     if s.get("anchors") is not None and s["kind"] == "proxycodec.scene":

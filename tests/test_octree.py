@@ -166,6 +166,7 @@ def test_bad_coding_name_and_cli(tmp_path):
     assert read_container(tmp_path / "s.pxc").meta["scene_format"] == 6
     r = CliRunner().invoke(cli, ["stats", str(tmp_path / "s.pxc")])
     assert r.exit_code == 0 and "anchors/octree" in r.output and "positions grid octree" in r.output, r.output
+    assert "(scene format 6: octree)" in r.output
 
 
 def test_flipped_bytes_fail_alike_in_both_decoders(pair, tmp_path):
