@@ -180,3 +180,18 @@ def test_flipped_bytes_fail_alike_in_both_decoders(pair, tmp_path):
         p = tmp_path / f"flip{i}.pxc"
         p.write_bytes(bytes(flipped))
         assert outcome(lite.decode, p) == outcome(codec.decode, p), pos
+
+
+def test_positions_the_octree_cannot_hold_fall_back_to_deltas():
+    from proxycodec.sections import encode_positions
+
+    voxel = 0.05
+    pos = (np.array([[0, 0, 0], [3, 1, 2], [3, 1, 2], [7, 0, 1]]) * voxel).astype(np.float32)  # a duplicate
+    pc = encode_positions(pos, voxel, "octree")
+    assert pc.info["coding"] == "delta" and octree.STREAM not in pc.sections
+    pc = encode_positions(np.unique(pos, axis=0), voxel, "octree")
+    assert pc.info["coding"] == "octree" and pc.info["depth"] == 3
+    off = pos + np.float32(0.013)  # on no grid: float32 positions whatever the coding
+    assert encode_positions(off, voxel, "octree").info["mode"] == "float32"
+    with pytest.raises(ProxycodecError, match="position coding"):
+        encode_positions(pos, voxel, "kd")
