@@ -59,7 +59,8 @@ def _stderr(msg: str) -> None:
 @encode_option("--entropy-iters", show_default=True, type=int, help="Iterations fitting the entropy model.")
 @encode_option("--positions", show_default=True, type=click.Choice(["delta", "octree"]),
                help="Grid positions: per-axis deltas in Morton order (zstd), or an octree of them, binary "
-                    "arithmetic-coded (scene format 6: 40-60% fewer position bytes; older readers refuse it).")
+                    "arithmetic-coded (scene format 6: a third to a half fewer position bytes; older readers "
+                    "refuse it).")
 @encode_option("--lambda-rate", show_default=True, type=click.FloatRange(0.0),
                help="With distillation: weight of the rate term (noise quantisation, learned steps per channel).")
 @encode_option("--quant-cells", show_default=True, type=click.IntRange(0, 32),
