@@ -71,7 +71,7 @@ def _step_explicit(a: dict) -> dict:
 
 
 #: Metadata that says how the content is coded, not what it is: encodes differing only there decode to the same scene
-CODING_META = ("encoder", "entropy", "scene_format", "positions", "weights_layout", "quant")
+CODING_META = ("encoder", "entropy", "scene_format", "features", "positions", "weights_layout", "quant")
 
 
 def _content_key(path: Path) -> str:
