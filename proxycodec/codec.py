@@ -44,9 +44,9 @@ from .scene import AnchorScene
 # The scene format (both halves) is torch-free; proxycodec.lite reads containers through it too.
 from .sections import (
     FLOAT_BITS, MAX_ANCHORS, MAX_LEVEL_CELLS, OFFSETS, POSITION_CODINGS, PREDICT_CHUNK, PROXY_FEATURES, SCALINGS,
-    SCENE_FORMAT, SCENE_FORMAT_ENTROPY, SCENE_FORMAT_LEVELS, SCENE_FORMAT_OCTREE, SCENE_KIND, QuantizedAnchors, encode_positions, level_table,
-    guarded, pack_weights, quantize_anchors, read_scene_container, scene_extras, scene_metadata, scene_sections,
-    stored_anchors, weights_from_sections, zero_dead_offsets,
+    SCENE_FORMAT, SCENE_FORMAT_ENTROPY, SCENE_FORMAT_LEVELS, SCENE_FORMAT_OCTREE, SCENE_KIND, QuantizedAnchors,
+    encode_positions, guarded, level_table, pack_weights, quantize_anchors, read_scene_container, scene_extras,
+    scene_features, scene_metadata, scene_sections, stored_anchors, weights_from_sections, zero_dead_offsets,
 )
 
 __all__ = ["EncodeConfig", "EncodeReport", "CompressedScene", "encode", "decode", "load", "stats", "render",
@@ -561,7 +561,7 @@ def _entropy_code(sections: dict, meta: dict, pos_sorted: np.ndarray, voxel: flo
     emeta["hidden"], emeta["iters"] = cfg.entropy_hidden, cfg.entropy_iters
     meta["entropy"] = emeta
     if meta["scene_format"] == SCENE_FORMAT_OCTREE:  # format 6 lists it
-        meta["features"] = sorted(set(meta["features"]) | {"entropy"})
+        meta["features"] = scene_features(meta)
     elif meta["scene_format"] != SCENE_FORMAT_LEVELS:  # format 5 covers both codings
         meta["scene_format"] = SCENE_FORMAT_ENTROPY
     out = {k: v for k, v in sections.items() if k not in names}

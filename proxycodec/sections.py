@@ -487,6 +487,16 @@ def scene_sections(positions: PositionCoding, proxy_mask: np.ndarray, quantized:
     return sections
 
 
+def scene_features(meta: dict) -> list[str]:
+    """The sorted ``SCENE_FEATURES`` a scene container's metadata uses (what format 6 lists in ``features``): the
+    writer records them, the reader checks a file's list against them."""
+    used = {"entropy": "entropy" in meta,
+            "levels": any(isinstance(v, dict) and "levels" in v for v in meta["quant"].values()),
+            "octree": meta["positions"].get("coding") == "octree",
+            "variant": bool(DecoderConfig.from_json(meta["decoder"]).variant())}
+    return sorted(k for k, v in used.items() if v)
+
+
 def scene_metadata(positions: PositionCoding, proxy_mask: np.ndarray, quantized: QuantizedAnchors, *,
                    feat_dim: int, n_offsets: int, voxel_size: float, bounds: np.ndarray, predict_offsets: bool,
                    weights_dtype: str, decoder_config: DecoderConfig, predictor_config: PredictorConfig,
@@ -495,15 +505,11 @@ def scene_metadata(positions: PositionCoding, proxy_mask: np.ndarray, quantized:
     quantisation, offsets mode, network configurations, cameras, background) plus ``provenance`` (how the encoder
     made it: training, proxy selection, source, encoder; JSON values, stored as given)."""
     M, P = int(len(proxy_mask)), int(proxy_mask.sum())
-    octree_coded = positions.info.get("coding") == "octree"
-    levels = any("levels" in v for v in quantized.quant.values())
-    return {
+    meta = {
         "kind": SCENE_KIND,
-        "scene_format": (SCENE_FORMAT_OCTREE if octree_coded
-                         else SCENE_FORMAT_LEVELS if levels
+        "scene_format": (SCENE_FORMAT_OCTREE if positions.info.get("coding") == "octree"
+                         else SCENE_FORMAT_LEVELS if any("levels" in v for v in quantized.quant.values())
                          else SCENE_FORMAT_VARIANT if decoder_config.variant() else SCENE_FORMAT),
-        **({"features": sorted({"octree"} | ({"levels"} if levels else set())
-                               | ({"variant"} if decoder_config.variant() else set()))} if octree_coded else {}),
         "anchors": {"count": M, "proxies": P, "leaves": M - P, "feat_dim": feat_dim, "n_offsets": n_offsets},
         "voxel_size": voxel_size,
         "bounds": np.asarray(bounds, dtype=np.float64).tolist(),
@@ -517,6 +523,9 @@ def scene_metadata(positions: PositionCoding, proxy_mask: np.ndarray, quantized:
         "background": [float(x) for x in background],
         **provenance,
     }
+    if meta["scene_format"] == SCENE_FORMAT_OCTREE:
+        meta["features"] = scene_features(meta)
+    return meta
 
 
 def zero_dead_offsets(q_off: np.ndarray, qp: dict, dead: np.ndarray, levels: np.ndarray | None = None
@@ -713,7 +722,8 @@ def stored_anchors(meta: dict, sections: dict[str, np.ndarray], err: ErrorFactor
             (fmt == SCENE_FORMAT_ENTROPY and "entropy" not in meta):
         raise err("entropy-coded sections need scene format 4, 5 or 6 and its 'entropy' metadata")
     levels = any(isinstance(v, dict) and "levels" in v for v in q.values())
-    if (levels and fmt not in (SCENE_FORMAT_LEVELS, SCENE_FORMAT_OCTREE)) or (fmt == SCENE_FORMAT_LEVELS and not levels):
+    if (levels and fmt not in (SCENE_FORMAT_LEVELS, SCENE_FORMAT_OCTREE)) or \
+            (fmt == SCENE_FORMAT_LEVELS and not levels):
         raise err("per-cell quantisation levels need scene format 5 or 6, and format 5 needs them")
     if "entropy" in meta:
         if meta["offsets"] != "stored":
@@ -743,11 +753,8 @@ def stored_anchors(meta: dict, sections: dict[str, np.ndarray], err: ErrorFactor
         raise err("network configurations do not match the anchors' feature/offset sizes")
     if pcfg.predict_offsets != (offsets_mode == "predicted"):
         raise err("predictor configuration disagrees with the offsets mode")
-    if features is not None:
-        used = {"entropy": "entropy" in meta, "levels": levels, "octree": octree_coded, "variant": bool(dcfg.variant())}
-        if set(features) != {k for k, v in used.items() if v}:
-            raise err(f"scene features {sorted(features)} do not match what the file uses "
-                      f"({sorted(k for k, v in used.items() if v)})")
+    if features is not None and set(features) != set(used := scene_features(meta)):
+        raise err(f"scene features {sorted(features)} do not match what the file uses ({used})")
     # [D] row-major, as a PLY-loaded scene is: the section layouts are channel-major, and transposed views made every
     # render gather anchors across strides (measured on bonsai: +30 ms per view at any resolution)
     c = np.ascontiguousarray
