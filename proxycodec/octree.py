@@ -46,10 +46,11 @@ def depth_of(rel: np.ndarray) -> int:
     return max(1, int(rel.max(initial=0)).bit_length())
 
 
-def can_code(rel: np.ndarray) -> bool:
-    """Whether ``rel`` [M, 3] (non-negative int64) is octree-codable: at least one point, all distinct, within
-    ``MAX_DEPTH`` bits per axis."""
-    return len(rel) > 0 and depth_of(rel) <= MAX_DEPTH and len(np.unique(rel, axis=0)) == len(rel)
+def can_code(sorted_rel: np.ndarray) -> bool:
+    """Whether Morton-sorted ``sorted_rel`` [M, 3] (non-negative int64) is octree-codable: at least one point, all
+    distinct (equal points are adjacent once sorted), within ``MAX_DEPTH`` bits per axis."""
+    return (len(sorted_rel) > 0 and depth_of(sorted_rel) <= MAX_DEPTH
+            and bool((sorted_rel[1:] != sorted_rel[:-1]).any(1).all()))
 
 
 def _masks(sorted_rel: np.ndarray, depth: int) -> list[np.ndarray]:
@@ -71,17 +72,18 @@ def _masks(sorted_rel: np.ndarray, depth: int) -> list[np.ndarray]:
     return out
 
 
-def _passes(bits_of_level: Callable[[int, int, np.ndarray, np.ndarray], np.ndarray], depth: int,
+def _passes(bits_of_level: Callable[[int, int, np.ndarray], np.ndarray], depth: int,
             nodes_of_level: Callable[[int, np.ndarray], int]) -> None:
     """The coding order shared by both sides: levels from the root; in a level, bits k = 0..7; for a bit, its
-    contexts n = 0..k, each over the nodes (in order) whose first k bits hold n set bits."""
+    contexts n = 0..k, each over the nodes (in order) whose first k bits hold n set bits. ``nodes_of_level(level,
+    bits of the level above)`` gives the level's node count; ``bits_of_level(level, k, n)`` codes bit k."""
     bits = np.zeros((1, 8), np.int64)
     for level in range(depth):
         n_nodes = nodes_of_level(level, bits)
         bits = np.zeros((n_nodes, 8), np.int64)
         n = np.zeros(n_nodes, np.int64)
         for k in range(8):
-            bits[:, k] = bits_of_level(level, k, n, bits)
+            bits[:, k] = bits_of_level(level, k, n)
             n += bits[:, k]
     nodes_of_level(depth, bits)
 
@@ -98,7 +100,7 @@ def encode(sorted_rel: np.ndarray) -> tuple[dict[str, np.ndarray], int]:
     def nodes(level, _bits):
         return len(masks[level]) if level < depth else 0
 
-    def code(level, k, n, _bits):
+    def code(level, k, n):
         b = (masks[level] >> k) & 1
         for c in range(k + 1):
             sel = n == c
@@ -142,7 +144,7 @@ def decode(sections: dict[str, np.ndarray], depth: int, count: int,
         pts[0] = pts[0][node] * 2 + np.stack([child & 1, (child >> 1) & 1, (child >> 2) & 1], 1)
         return len(node)
 
-    def code(level, k, n, _bits):
+    def code(level, k, n):
         b = np.zeros(len(n), np.int64)
         for c in range(k + 1):
             sel = np.nonzero(n == c)[0]
