@@ -368,9 +368,12 @@ def stats(file, as_json) -> None:
         if s["trailing_bytes"]:
             click.echo(f"  {'trailing':10s} {s['trailing_bytes']:12,} B")
         return
-    feats = (s.get("metadata") or {}).get("features") if isinstance(s.get("metadata"), dict) else None
-    fmt = (f" (scene format {s['scene_format']}" + (f": {', '.join(map(str, feats))}" if isinstance(feats, list) else "")
-           + ")") if s.get("scene_format") is not None else ""
+    fmt = ""
+    if s.get("scene_format") is not None:
+        meta = s.get("metadata")
+        feats = meta.get("features") if isinstance(meta, dict) else None
+        fmt = f" (scene format {s['scene_format']}" + (f": {', '.join(map(str, feats))}" if isinstance(feats, list)
+                                                        else "") + ")"
     click.echo(f"{s['file']}: proxycodec container v{s['format_version']}, kind {s['kind']}{fmt}, "
                f"{s['file_bytes']:,} B")
     if s.get("anchors") is not None and s["kind"] == "proxycodec.scene":

@@ -143,6 +143,8 @@ def render_views(model, resolutions, out_dir: Path, views, backend: str, prefix:
     plain render only), supersampled by ``supersample`` (``render.render_supersampled``)."""
     from PIL import Image
 
+    from ..render import render_supersampled
+
     cams = model.cameras
     if not cams:
         from ..sample import sample_cameras
@@ -157,12 +159,7 @@ def render_views(model, resolutions, out_dir: Path, views, backend: str, prefix:
     for i in idx:
         for xi in resolutions:
             t0 = time.perf_counter()
-            if supersample == 1:
-                r = model.render(cams[i], xi, backend=backend)
-            else:
-                from ..render import render_supersampled
-
-                r = render_supersampled(model, cams[i], xi, supersample, backend=backend)
+            r = render_supersampled(model, cams[i], xi, supersample, backend=backend)
             dt = time.perf_counter() - t0
             h, w = r.image.shape[:2]
             path = out_dir / f"{prefix}view{i:03d}_res{xi:.3f}.png"

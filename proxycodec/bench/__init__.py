@@ -9,9 +9,9 @@ same arguments (and whose output files still exist), so an interrupted run resum
 A *point* is one way of storing a scene: a container from some encode settings, the uncompressed anchor PLY + weights,
 a plain 3DGS INRIA PLY or its SPZ conversion. Per point: bytes on disk, PSNR / SSIM averaged over the ten resolutions
 10%..100% (on the first ``views`` test views), PSNR at 10% and 100%, fit / encode / decode seconds, mean render time
-per resolution, peak RSS per step. Encodes that decode to the same scene (they differ only in the zstd level, the entropy coding or the position
-coding: ``steps._content_key``) share one quality evaluation (``quality_from``); their decode is still timed on its
-own.
+per resolution, peak RSS per step. Encodes that decode to the same scene (they differ only in the zstd level, the
+entropy coding or the position coding: ``steps._content_key``) share one quality evaluation (``quality_from``);
+their decode is still timed on its own.
 
 Modules: ``steps`` (the measured steps), ``runner`` (runs and records them; the subprocess worker), ``sweeps``
 (points, the encode sweeps, ``proxycodec bench``), ``report`` (Pareto fronts, markdown, plots).

@@ -165,15 +165,15 @@ def render_supersampled(model, camera, xi: float, factor: int = 1, *, backend: s
     (the same field of view; a resolution embedding sees ``factor * xi``, capped at ``camera.XI_MAX``) and each
     ``factor x factor`` block of pixels is averaged: a box filter, the area average the photos' smaller sizes are
     made with (``formats.images``). The result keeps the large render's ``projected`` (what was drawn there)."""
+    factor = check_supersample(factor)
+    if factor == 1:  # before any torch import: the torch-free decode path renders through here too
+        return model.render(camera, xi, backend=backend)
     import dataclasses
 
     import torch
 
     from ..camera import XI_MAX, check_xi
 
-    factor = check_supersample(factor)
-    if factor == 1:
-        return model.render(camera, xi, backend=backend)
     small = camera.scaled(check_xi(xi))
     if max(small.width, small.height) * factor > MAX_SUPERSAMPLED_SIDE:
         raise ProxycodecError(f"supersampling {small.width}x{small.height} by {factor} renders "
