@@ -30,21 +30,30 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 
 
-def run(models: dict[str, str], dataset: str, max_width: int | None, res: list[float],
-        factors: dict[int, float], views_every: int, log) -> dict:
-    """``factors``: factor -> the largest resolution it is measured at."""
-    from proxycodec.evaluate import evaluate
+def load(models: dict[str, str], dataset: str, max_width: int | None):
+    """-> (the dataset, label -> model), each loaded once for every measurement of the run."""
     from proxycodec.explicit import ExplicitModel
     from proxycodec.formats.datasets import load_dataset
     from proxycodec.scenes import load_any
 
     data = load_dataset(dataset, max_width=max_width)
+    loaded = {}
+    for label, path in models.items():
+        loaded[label] = load_any(path)
+        if isinstance(loaded[label], ExplicitModel):  # the dataset's background, as ``eval`` renders a 3DGS PLY
+            loaded[label].background = tuple(data.background)
+    return data, loaded
+
+
+def run(models: dict[str, str], loaded: dict, data, res: list[float], factors: dict[int, float], views_every: int,
+        log) -> dict:
+    """``factors``: factor -> the largest resolution it is measured at; ``loaded``, ``data``: from ``load``."""
+    from proxycodec.evaluate import evaluate
+
     views = list(data.test_indices)[::views_every]
     out = {"views": views, "resolutions": res, "factors": {str(f): m for f, m in factors.items()}, "models": {}}
     for label, path in models.items():
-        model = load_any(path)
-        if isinstance(model, ExplicitModel):  # the dataset's background, as ``eval`` renders a 3DGS PLY
-            model.background = tuple(data.background)
+        model = loaded[label]
         model.render(data.cameras[views[0]], 0.5)  # warm-up (numba's cache, the allocator): not timed
         per = {}
         for f, top in factors.items():
@@ -65,20 +74,15 @@ def run(models: dict[str, str], dataset: str, max_width: int | None, res: list[f
     return out
 
 
-def embedding_probe(models: dict[str, str], dataset: str, max_width: int | None, xi: float, embeds: list[float],
-                    views_every: int, log) -> dict:
+def embedding_probe(loaded: dict, data, xi: float, embeds: list[float], views_every: int, log) -> dict:
     """Per anchor scene: mean PSNR of the plain render at ``xi`` with the embedding told each of ``embeds``."""
     import torch
 
-    from proxycodec.formats.datasets import load_dataset
     from proxycodec.metrics import psnr
-    from proxycodec.scenes import load_any
 
-    data = load_dataset(dataset, max_width=max_width)
     views = list(data.test_indices)[::views_every]
     out = {}
-    for label, path in models.items():
-        model = load_any(path)
+    for label, model in loaded.items():
         if getattr(model.scene, "num_anchors", None) is None:
             continue  # plain 3DGS has no embedding
         vals = {e: [] for e in embeds}
@@ -174,11 +178,12 @@ def main(argv=None) -> int:
     if 1 not in factors:
         ap.error("--factors must include 1 (the plain render the others are priced against)")
     t0 = time.time()
-    out = run(models, args.dataset, args.max_width, res, factors, args.views_every, lambda s: print(s, flush=True))
+    data, loaded = load(models, args.dataset, args.max_width)
+    out = run(models, loaded, data, res, factors, args.views_every, lambda s: print(s, flush=True))
     if args.embedding_at:
         xi, _, es = args.embedding_at.partition(":")
         out["embedding_probe"] = {"xi": float(xi), "psnr": embedding_probe(
-            models, args.dataset, args.max_width, float(xi), [float(e) for e in es.split(",")], args.views_every,
+            loaded, data, float(xi), [float(e) for e in es.split(",")], args.views_every,
             lambda s: print(s, flush=True))}
     out.update({"kind": "proxycodec.supersample", "dataset": args.dataset, "max_width": args.max_width,
                 "machine": machine_info(), "versions": versions(), "threads": threads, "seed": None,
