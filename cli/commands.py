@@ -8,6 +8,7 @@ from pathlib import Path
 
 import click
 
+from ..fileio import atomic_write
 from .common import (
     background_option, command_device, on_device, parse_resolutions, render_views, supersample_option, user_errors,
 )
@@ -112,6 +113,6 @@ def demo(out_dir: str, res: str, backend: str, predictor_iters: int, predictor_c
     for i in range(0, len(rows), len(resolutions)):  # per view: a row of originals, then a row of decoded
         paths += [r["path"] for r in rows[i:i + len(resolutions)]] + [r["path"] for r in rows_d[i:i + len(resolutions)]]
     sheet = contact_sheet(paths, out / "contact_sheet.png", columns=len(resolutions))
-    (out / "demo.json").write_text(json.dumps({"encode": report.to_json(), "original": rows, "decoded": rows_d},
-                                              indent=2))
+    with atomic_write(out / "demo.json", "w") as fh:
+        json.dump({"encode": report.to_json(), "original": rows, "decoded": rows_d}, fh, indent=2)
     click.echo(f"contact sheet (rows: original, decoded per view) -> {sheet}")

@@ -666,8 +666,9 @@ def _rule_reproducing_leaves(pred: ResidualPredictor, pos_sorted: np.ndarray, ma
     """The stage-2 predictor under the tie rule (``nearest.TIES``) with which it reproduces the scene's leaves: its
     own when it does (always, for scenes fitted since the "grid" rule), else the first that does. A conversion
     written before that rule trained in its canonical frame and stored world coordinates, where "position" breaks
-    the grid's ties otherwise than training did (bonsai: every leaf's neighbours changed, -3.7 dB decoded); "grid"
-    finds training's neighbours again. When no rule reproduces them the predictor is kept and the gap reported."""
+    the grid's ties otherwise than training did (bonsai: every leaf's neighbours changed, 27.07 -> 23.89 dB
+    decoded); "grid" finds training's neighbours again. When no rule reproduces them the predictor is kept and the
+    gap reported."""
     leaves = np.flatnonzero(~mask)
     if not len(leaves):
         return pred

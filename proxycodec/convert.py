@@ -83,15 +83,17 @@ class ConvertConfig:
         if self.target_size is not None and self.target_size < CONTAINER_BASE_BYTES + CONTAINER_ANCHOR_BYTES:
             raise ProxycodecError(f"a target size below {CONTAINER_BASE_BYTES + CONTAINER_ANCHOR_BYTES:,} B holds no "
                                   f"anchor (the weights alone take ~{CONTAINER_BASE_BYTES:,} B)")
+        if self.background is not None and (len(self.background) != 3 or not all(
+                math.isfinite(b) and 0.0 <= b <= 1.0 for b in self.background)):
+            raise ProxycodecError(f"background must be 3 numbers in [0, 1], got {self.background}")
+        if not (math.isfinite(self.lr_scale) and self.lr_scale >= 0):
+            raise ProxycodecError(f"learning-rate scale must be a finite number >= 0, got {self.lr_scale}")
 
     def anchor_budget(self) -> int | None:
         """The most anchors the automatic voxel may make: ``max_anchors``, ``target_size``'s, the smaller of both."""
         caps = [c for c in (self.max_anchors, anchors_for_size(self.target_size) if self.target_size else None)
                 if c is not None]
         return min(caps) if caps else None
-        if self.background is not None and (len(self.background) != 3 or not all(
-                0.0 <= b <= 1.0 for b in self.background)):
-            raise ProxycodecError(f"background must be 3 numbers in [0, 1], got {self.background}")
 
 
 # ================================================================================================ the source

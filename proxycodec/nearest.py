@@ -21,7 +21,7 @@ BRUTE_FORCE_PAIRS = 16_000_000
 #: the proxies' lowest corner: positions are rounded to it, so the squared distances are exact integers and a tie
 #: stays a tie when the positions are moved and scaled (a conversion trains in a canonical frame and stores world
 #: coordinates: under "position" float32 rounding broke the grid's ties differently, and 100% of a 20k-anchor
-#: conversion's leaves decoded from other neighbours than they were trained with; -3.7 dB).
+#: conversion's leaves decoded from other neighbours than they were trained with; 27.07 -> 23.89 dB).
 TIES = ("index", "position", "grid")
 GRID_STEPS = 16
 

@@ -87,6 +87,17 @@ def test_the_automatic_voxel_keeps_the_weight_it_promises_and_is_the_largest_tha
         ConvertConfig(target_size=1000)
 
 
+@pytest.mark.parametrize("bad, match", [({"background": (2.0, 0.0, 0.0)}, "background"),
+                                        ({"background": (0.0, 0.0)}, "background"),
+                                        ({"background": (float("nan"), 0.0, 0.0)}, "background"),
+                                        ({"lr_scale": -1.0}, "learning-rate scale"),
+                                        ({"lr_scale": float("inf")}, "learning-rate scale")])
+def test_config_refuses_bad_background_and_lr_scale(bad, match):
+    with pytest.raises(ProxycodecError, match=match):
+        ConvertConfig(**bad)
+    ConvertConfig(background=(1.0, 1.0, 1.0), lr_scale=0.5)  # in range: accepted
+
+
 def test_voxel_hashing_equals_row_wise_unique():
     from proxycodec.convert import _cells
 

@@ -72,11 +72,12 @@ def code_key() -> str:
     """What the code that runs a step is: a SHA-1 (16 hex digits) of the package's Python sources (``proxycodec``,
     with ``formats`` and ``cli``; paths and contents), so that a step recorded by other code is run again, and a
     change outside the package (a benchmark script, a document) keeps the steps."""
-    import importlib
+    import importlib.util
 
     h = hashlib.sha1()
     for name in ("proxycodec", "proxycodec.formats", "proxycodec.cli"):
-        root = Path(importlib.import_module(name).__path__[0])
+        # found, not imported: the library never imports the CLI
+        root = Path(importlib.util.find_spec(name).submodule_search_locations[0])
         for f in sorted(root.rglob("*.py")):
             if "__pycache__" in f.parts:
                 continue
