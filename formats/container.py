@@ -43,6 +43,11 @@ MAX_NDIM = 8
 MAX_RAW_BYTES = 8 << 30  # 8 GiB: no real section comes near
 #: zstd cannot expand more than ~32768x (a 4-byte RLE block per 128 KiB); anything claiming more is forged.
 MAX_ZSTD_RATIO = 1 << 16
+#: zstd's largest expansion per input byte: a 4-byte block (3-byte header + 1 RLE byte) yields up to 128 KiB.
+ZSTD_BLOCK_RATIO = 1 << 15
+#: How far past the declared raw size decompression may run before it stops (plus one 128 KiB block): the input is
+#: fed in pieces no larger than (room + slack) / ZSTD_BLOCK_RATIO bytes, so no piece can expand past it.
+DECOMPRESS_SLACK = 1 << 26
 META_SECTION = "meta"
 
 
@@ -78,7 +83,7 @@ class Container:
 
 def _encode_name(name: str) -> bytes:
     b = name.encode("utf-8")
-    if not (0 < len(b) <= MAX_NAME) or not all(c.isalnum() or c in "_./-" for c in name):
+    if not (0 < len(b) <= MAX_NAME) or not all((c.isascii() and c.isalnum()) or c in "_./-" for c in name):
         raise ProxycodecError(f"bad section name {name!r}")
     return b
 
@@ -230,9 +235,15 @@ def _decompress(stored: bytes, raw_size: int, err) -> bytearray:
         raise err(f"compressed stream declares {params.content_size} bytes, table of contents {raw_size}")
     out = bytearray()
     dobj = dctx.decompressobj()
+    view = memoryview(stored)
     try:
-        for i in range(0, len(stored), 1 << 16):
-            out += dobj.decompress(stored[i:i + (1 << 16)])
+        i = 0
+        while i < len(stored):
+            # a piece of n input bytes yields at most n / 4 + 1 blocks of 128 KiB: never more than the room left
+            # plus the slack (and one block), whatever the stream
+            n = min(1 << 16, max(4, (raw_size - len(out) + DECOMPRESS_SLACK) // ZSTD_BLOCK_RATIO))
+            out += dobj.decompress(view[i:i + n])
+            i += n
             if len(out) > raw_size:
                 raise err("compressed stream is longer than declared")
     except zstandard.ZstdError as e:

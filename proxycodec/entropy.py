@@ -15,9 +15,8 @@ How (SPEC section 4, "Entropy coding"):
 - **Bit-exact on every x86 machine.** Every value that selects a probability is an integer computed exactly: inputs
   are integers clipped to [-127, 127], weights int8, so every product and partial sum of a layer is an integer below
   2^24 and float32 matrix products (BLAS, any summation order, FMA or not) give the same exact result; activations
-  are re-quantised by arithmetic shifts. The probability tables are integers built from ``rho_s`` in Q32 by integer
-  multiplication; ``rho_s = exp(-1 / b_s)`` is computed once in decimal arithmetic (correctly rounded, software:
-  no libm). The coder (``constriction``'s ANS, Rust) normalises those integer-valued tables itself, in IEEE
+  are re-quantised by arithmetic shifts. The probability tables are integers: Laplace masses computed in 50-digit decimal
+  arithmetic (correctly rounded, software: no libm) and truncated to Q32 (formats/CONTAINER.md, Appendix A.3). The coder (``constriction``'s ANS, Rust) normalises those integer-valued tables itself, in IEEE
   arithmetic without platform-dependent reductions.
 - Residuals ``q - m`` in [-254, 254] are coded directly; larger ones as an escape symbol plus their excess in
   ``entropy/escapes``.
@@ -67,7 +66,7 @@ def scale_tables() -> np.ndarray:
     training rate assumes: ``entropy_fit.laplace_bits``), floored, at least 1. Computed in decimal arithmetic (50
     digits, correctly rounded, no libm), so the integers are the same everywhere. The escapes carry the tail
     beyond the direct range."""
-    ctx = decimal.Context(prec=50)
+    ctx = decimal.Context(prec=50, rounding=decimal.ROUND_HALF_EVEN)  # whatever the host's DefaultContext
     D = decimal.Decimal
     one = D(1 << 32)
     out = np.zeros((SCALE_LEVELS, ALPHABET), np.float64)

@@ -685,7 +685,10 @@ def stored_anchors(meta: dict, sections: dict[str, np.ndarray], err: ErrorFactor
         if unknown:
             raise err(f"scene feature(s) {', '.join(map(repr, unknown))} not supported by this proxycodec (supports "
                       f"{', '.join(SCENE_FEATURES)}); upgrade proxycodec")
-    octree_coded = pinfo.get("coding") == "octree"
+    coding = pinfo.get("coding")  # absent in files written before codings were named: delta / plain
+    if coding not in {"grid": (None, "delta", "octree"), "float32": (None, "plain")}.get(pinfo.get("mode"), (coding,)):
+        raise err(f"unknown position coding {coding!r} for mode {pinfo.get('mode')!r}")
+    octree_coded = coding == "octree"
     if octree_coded and fmt != SCENE_FORMAT_OCTREE:
         raise err("octree-coded positions need scene format 6")
     if pinfo["mode"] == "grid":

@@ -161,6 +161,30 @@ class TestHostile:
         with pytest.raises(ContainerError, match="longer than declared|holds|content"):
             read_container(p2)
 
+    def test_a_bomb_stops_within_a_block_of_the_declared_size(self, tmp_path, monkeypatch):
+        """64 MiB of zeros in ~2 KB, declared as 16 bytes: decompression stops before it has made 1 MiB (without the
+        slack: the room left plus one 128 KiB block), where one 64 KiB input chunk would have made all 64 MiB."""
+        import tracemalloc
+
+        import proxycodec.formats.container as C
+
+        monkeypatch.setattr(C, "DECOMPRESS_SLACK", 0)
+        bomb = zstandard.ZstdCompressor(level=1, write_content_size=False).compress(b"\0" * (64 << 20))
+        assert len(bomb) < (1 << 16)
+        tracemalloc.start()
+        try:
+            with pytest.raises(ContainerError, match="longer than declared"):
+                C._decompress(bomb, 16, lambda m: ContainerError(m, "bomb"))
+            peak = tracemalloc.get_traced_memory()[1]
+        finally:
+            tracemalloc.stop()
+        assert peak < (1 << 20), peak
+        # the default slack decodes a legitimate stream whatever its ratio
+        data = np.arange(1 << 20, dtype=np.uint32).tobytes() + bytes(8 << 20)
+        z = zstandard.ZstdCompressor(level=3, write_content_size=False).compress(data)
+        monkeypatch.setattr(C, "DECOMPRESS_SLACK", 1 << 26)
+        assert bytes(C._decompress(z, len(data), lambda m: ContainerError(m, "z"))) == data
+
     def test_trailing_bytes_and_too_many_sections(self, small, tmp_path):
         p = tmp_path / "t"
         p.write_bytes(small.read_bytes() + b"\0")

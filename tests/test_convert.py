@@ -190,9 +190,11 @@ def test_convert_writes_a_stage_2_anchor_scene_and_reports_on_held_out_views(tmp
     rows = r.report["converted"]["per_resolution"]
     assert [x["xi"] for x in rows] == [round(0.1 * k, 1) for k in range(1, 11)]
     assert all(math.isfinite(x["psnr"]) for x in rows)
+    assert min(x["psnr"] for x in rows) > 15  # 24 iterations on a 300-Gaussian ball: 17.4-19.1 dB measured
     assert r.report["converted"]["held_out"] and r.report["converted"]["views"] == [0]  # every 8th of 12 views
-    assert r.report["source_direct"]["per_resolution"][-1]["psnr"] is None or \
-        r.report["source_direct"]["per_resolution"][-1]["psnr"] > 60  # the reference itself at 100%
+    direct = [x["psnr"] for x in r.report["source_direct"]["per_resolution"]]
+    assert direct[-1] is None  # at 100% the reference is the source's own render: identical (infinite PSNR)
+    assert all(math.isfinite(v) and v < 60 for v in direct[:-1])  # below it, the plain render aliases
     assert any("initial fit" in s for s in log) and any(s.startswith("it ") for s in log)
     json.dumps(r.to_json())  # JSON-able
 
@@ -244,8 +246,8 @@ def test_an_interrupted_conversion_resumes_to_the_same_scene(tmp_path):
     assert any("resumed" in s and "iteration 11" in s for s in log)
     a, b = SceneModel.load(tmp_path / "a.ply").scene, SceneModel.load(tmp_path / "b.ply").scene
     assert a.num_anchors == b.num_anchors
-    for name in ("features", "offsets", "scalings"):
-        assert torch.allclose(getattr(a, name), getattr(b, name), atol=1e-4), name
+    for name in ("positions", "features", "offsets", "scalings"):  # bit for bit: every state is checkpointed
+        assert torch.equal(getattr(a, name), getattr(b, name)), name
 
 
 @pytest.mark.parametrize("case, message", [

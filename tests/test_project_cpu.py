@@ -23,8 +23,6 @@ import numpy as np
 import pytest
 import torch
 
-pytest.importorskip("numba")
-
 from proxycodec.camera import Camera
 from proxycodec.render import GateConfig, project
 from proxycodec.render.project import project_gaussians

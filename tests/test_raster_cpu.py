@@ -10,8 +10,6 @@ import numpy as np
 import pytest
 import torch
 
-pytest.importorskip("numba")
-
 from proxycodec.camera import Camera
 from proxycodec.render import available_backends, project_gaussians, rasterize, render_gaussians
 from proxycodec.render import cpu as cpu_backend
@@ -307,6 +305,8 @@ class TestCudaBackendGuard:
     def test_import_guard(self):
         from proxycodec.render import cuda as cuda_backend
 
+        if cuda_backend.gsplat_available() and torch.cuda.is_available():
+            assert "cuda" in available_backends()
         if not cuda_backend.gsplat_available():
             assert "cuda" not in available_backends()
             with pytest.raises(Exception, match="gsplat"):

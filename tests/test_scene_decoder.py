@@ -114,7 +114,11 @@ def test_render_any_resolution_is_finite_with_gradients(xi):
     assert torch.isfinite(r.image).all()
     r.image.mean().backward()
     assert torch.isfinite(feats.grad).all()
-    assert any(torch.isfinite(p.grad).all() for p in dec.parameters() if p.grad is not None)
+    grads = {n: p.grad for n, p in dec.named_parameters() if p.grad is not None}
+    assert grads and all(torch.isfinite(g).all() for g in grads.values()), [n for n, g in grads.items()
+                                                                             if not torch.isfinite(g).all()]
+    if feats.grad.abs().sum() > 0:  # something is drawn: the colour MLP's gradient reaches its first layer too
+        assert any(n.startswith("mlp_color") and g.abs().sum() > 0 for n, g in grads.items()), sorted(grads)
 
 
 def test_resolution_outside_range_is_a_user_error():

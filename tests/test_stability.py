@@ -32,6 +32,7 @@ pytestmark = pytest.mark.usefixtures("one_thread")
 
 def _backend(name: str) -> str:
     if name not in available_backends():
+        assert name not in ("reference", "cpu"), f"backend {name!r} must always be available (numba is a dependency)"
         pytest.skip(f"backend {name!r} is not available here (available: {available_backends()})")
     return name
 
@@ -306,7 +307,7 @@ def test_far_from_the_origin_renders_like_near_the_origin(backend):
     assert torch.equal((far.positions.double() - torch.tensor(off)).float(), near.positions)
     dn = _decoder(embedding="none")
     df = _decoder(embedding="none")
-    eye = np.array([0.3, -2.5, 0.8])
+    eye = np.array([0.25, -2.5, 0.75])  # multiples of 2^-7: the far camera centre is exact in float32 too
     cn = Camera.look_at(eye, [0, 0, 0], width=24, height=24, fov_x_deg=50)
     cf = Camera.look_at(eye + off, off, width=24, height=24, fov_x_deg=50)
     with torch.no_grad():
@@ -336,12 +337,8 @@ def test_tiny_voxels(backend):
 
 
 def _codec():
-    try:
-        from proxycodec import codec
-    except ImportError as e:  # pragma: no cover - only while the codec is being written
-        pytest.skip(f"proxycodec.codec is not importable yet ({e})")
-    if not all(hasattr(codec, k) for k in ("encode", "decode")):
-        pytest.skip("proxycodec.codec does not expose encode/decode yet")
+    from proxycodec import codec  # an import error fails these tests: the codec is part of the product
+
     return codec
 
 

@@ -125,5 +125,9 @@ def test_cli_render_and_decode_supersample(tmp_path):
                                      "-o", str(out)])
         assert r.exit_code == 0, r.output
         assert np.asarray(Image.open(out / "view000_res0.500.png")).shape == (12, 16, 3)
-    a, b = (np.asarray(Image.open(tmp_path / f"d{f}" / "view000_res0.500.png")) for f in "12")
+    a, b = (np.asarray(Image.open(tmp_path / f"d{f}" / "view000_res0.500.png")).astype(int) for f in "12")
     assert not np.array_equal(a, b)
+    decoded = codec.decode(pxc)  # decode --supersample 2 is the decoded scene's supersampled render
+    with torch.no_grad():
+        want = render_supersampled(decoded, decoded.cameras[0], 0.5, 2).image
+    assert np.abs(b - (want.clamp(0, 1).numpy() * 255 + 0.5).astype(int)).max() <= 1

@@ -358,6 +358,16 @@ def test_bench_quick_end_to_end_in_process(tiny, tmp_path):
     oc = pts["encode positions=octree"]  # lossless: the same decoded scene, so the same evaluation, other bytes
     assert oc["quality_from"] in ("encode default", "encode default (refit)") and oc["bytes"] != z3["bytes"]
     assert oc["psnr_avg"] == pts["encode default (refit)"]["psnr_avg"]
+    # ... which holds because they are the same scene: the shared evaluation is earned, not assumed
+    from proxycodec import codec
+    from proxycodec.bench.runner import safe_name
+
+    pxc = {p.stem: p for p in (out / "work").rglob("*.pxc")}
+    ref = codec.decode(pxc[safe_name(z3["quality_from"])]).scene
+    for pid in ("encode zstd_level=3", "encode positions=octree"):
+        got = codec.decode(pxc[safe_name(pid)]).scene
+        for k in ("positions", "features", "offsets", "scalings"):
+            assert torch.equal(getattr(got, k), getattr(ref, k)), (pid, k)
     assert any(p["pareto"] for p in res["points"])
     md = (out / "bench.md").read_text()
     assert "### Sweep: proxy_ratio" in md and "Pareto" in md and "Render time per resolution" in md

@@ -249,8 +249,9 @@ def test_a_container_is_viewed_by_the_torch_free_path(tiny, tmp_path):
         cam = tiny.cameras[0].sized(96, 72)
         f = v.frame_for(cam, xi=0.5)
         np.testing.assert_array_equal(f.image, lite.decode(pxc).render(cam, 0.5).image)
-        ref = codec.decode(pxc).render(cam, 0.5).image.numpy()
-        assert np.abs(f.image - ref).max() < 2e-3
+        from test_decode_lite import assert_renders_agree  # float32 paths: decisions may flip on another CPU
+
+        assert_renders_agree(codec.decode(pxc), lite.decode(pxc), cam, 0.5)
         assert f.stats["anchors"] == tiny.scene.num_anchors and f.stats["gaussians_decoded"] > 0
     finally:
         v.stop()
