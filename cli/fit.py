@@ -98,7 +98,8 @@ _no_undistort_option = click.option(
 @fit_option("--voxel-size", type=float, show_default=True, help="Anchor voxel size; <= 0: chosen by --voxel-rule.")
 @fit_option("--voxel-rule", type=click.Choice(["extent", "spacing"]), show_default=True,
             help="Automatic voxel: the SfM points' median nearest-neighbour spacing (Scaffold-GS's; about one "
-                 "anchor per point), or the scene's extent / 128 (fewer, larger anchors). Without SfM points: extent.")
+                 "anchor per point), or the scene's extent / 128 (fewer, larger anchors: better for a fit of "
+                 "minutes on a CPU, where they get more iterations). Without SfM points: extent.")
 @fit_option("--max-anchors", type=click.IntRange(min=1),
             help="Stop growing anchors at this many [default: no cap; the scene decides, as in Scaffold-GS].")
 @click.option("--init-points", type=int, default=None,
