@@ -41,10 +41,10 @@ MAX_TOC_BYTES = 1 << 20
 MAX_NAME = 64
 MAX_NDIM = 8
 MAX_RAW_BYTES = 8 << 30  # 8 GiB: no real section comes near
-#: zstd cannot expand more than ~32768x (a 4-byte RLE block per 128 KiB); anything claiming more is forged.
-MAX_ZSTD_RATIO = 1 << 16
 #: zstd's largest expansion per input byte: a 4-byte block (3-byte header + 1 RLE byte) yields up to 128 KiB.
 ZSTD_BLOCK_RATIO = 1 << 15
+#: A section claiming more than twice that expansion is forged (refused before any decompression).
+MAX_ZSTD_RATIO = 2 * ZSTD_BLOCK_RATIO
 #: How far past the declared raw size decompression may run before it stops (plus one 128 KiB block): the input is
 #: fed in pieces no larger than (room + slack) / ZSTD_BLOCK_RATIO bytes, so no piece can expand past it.
 DECOMPRESS_SLACK = 1 << 26

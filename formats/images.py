@@ -147,6 +147,17 @@ def resize_image(rgb: np.ndarray, width: int, height: int) -> np.ndarray:
     return out
 
 
+def check_background(values: Sequence[float]) -> tuple[float, float, float]:
+    """A background colour as three floats in [0, 1] (NaN fails the range test); ProxycodecError otherwise."""
+    try:
+        bg = tuple(float(v) for v in values)
+    except (TypeError, ValueError):
+        bg = ()
+    if len(bg) != 3 or not all(0.0 <= v <= 1.0 for v in bg):
+        raise ProxycodecError(f"background must be 3 numbers in [0, 1], got {values!r}")
+    return bg  # type: ignore[return-value]
+
+
 def look_at_bounds(cameras: Sequence[Camera]) -> np.ndarray:
     """A bounding-box estimate [2, 3] of the region a set of inward-looking cameras observes.
 
@@ -255,9 +266,7 @@ class PosedImages:
         bounds = np.asarray(self.bounds, dtype=np.float64)
         if bounds.shape != (2, 3) or not np.isfinite(bounds).all() or (bounds[0] > bounds[1]).any():
             raise ProxycodecError(f"PosedImages: bounds must be a finite [2, 3] box, got {bounds.tolist()}")
-        bg = tuple(float(v) for v in self.background)
-        if len(bg) != 3 or not all(0.0 <= v <= 1.0 for v in bg):
-            raise ProxycodecError(f"background must be 3 values in [0, 1], got {self.background!r}")
+        bg = check_background(self.background)
         object.__setattr__(self, "bounds", bounds)
         object.__setattr__(self, "background", bg)
         object.__setattr__(self, "train_indices", [int(i) for i in self.train_indices])

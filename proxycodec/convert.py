@@ -37,6 +37,7 @@ import torch
 from .camera import Camera
 from .devices import as_device
 from .errors import ProxycodecError
+from .formats.images import check_background
 from .loop import ProgressFn
 from .model import SceneModel
 from .scene import AnchorScene
@@ -83,9 +84,8 @@ class ConvertConfig:
         if self.target_size is not None and self.target_size < CONTAINER_BASE_BYTES + CONTAINER_ANCHOR_BYTES:
             raise ProxycodecError(f"a target size below {CONTAINER_BASE_BYTES + CONTAINER_ANCHOR_BYTES:,} B holds no "
                                   f"anchor (the weights alone take ~{CONTAINER_BASE_BYTES:,} B)")
-        if self.background is not None and (len(self.background) != 3 or not all(
-                math.isfinite(b) and 0.0 <= b <= 1.0 for b in self.background)):
-            raise ProxycodecError(f"background must be 3 numbers in [0, 1], got {self.background}")
+        if self.background is not None:
+            object.__setattr__(self, "background", check_background(self.background))
         if not (math.isfinite(self.lr_scale) and self.lr_scale >= 0):
             raise ProxycodecError(f"learning-rate scale must be a finite number >= 0, got {self.lr_scale}")
 

@@ -90,12 +90,14 @@ def test_the_automatic_voxel_keeps_the_weight_it_promises_and_is_the_largest_tha
 @pytest.mark.parametrize("bad, match", [({"background": (2.0, 0.0, 0.0)}, "background"),
                                         ({"background": (0.0, 0.0)}, "background"),
                                         ({"background": (float("nan"), 0.0, 0.0)}, "background"),
+                                        ({"background": ("white", 0.0, 0.0)}, "background"),
                                         ({"lr_scale": -1.0}, "learning-rate scale"),
                                         ({"lr_scale": float("inf")}, "learning-rate scale")])
 def test_config_refuses_bad_background_and_lr_scale(bad, match):
     with pytest.raises(ProxycodecError, match=match):
         ConvertConfig(**bad)
-    ConvertConfig(background=(1.0, 1.0, 1.0), lr_scale=0.5)  # in range: accepted
+    cfg = ConvertConfig(background=[1, 0.5, 0], lr_scale=0.5)  # in range: accepted, held as a tuple of floats
+    assert cfg.background == (1.0, 0.5, 0.0) and all(type(b) is float for b in cfg.background)
 
 
 def test_voxel_hashing_equals_row_wise_unique():

@@ -480,6 +480,8 @@ class TestBlender:
             PosedImages([cam], [0], [0], None, None, np.zeros((2, 3)), (1, 1, 1), [(10, 10)])
         with pytest.raises(ProxycodecError, match="background"):
             PosedImages([cam], [0], [], None, None, np.zeros((2, 3)), (2, 1, 1), [(10, 10)])
+        with pytest.raises(ProxycodecError, match="background"):
+            PosedImages([cam], [0], [], None, None, np.zeros((2, 3)), (float("nan"), 1, 1), [(10, 10)])
         with pytest.raises(ProxycodecError, match="bounds"):
             PosedImages([cam], [0], [], None, None, np.zeros((3, 3)), (1, 1, 1), [(10, 10)])
         with pytest.raises(ProxycodecError, match="cameras"):
