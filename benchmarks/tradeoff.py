@@ -17,7 +17,8 @@ each step finishes, a re-run resumes):
 4. encode-side sweeps on the main fit, one knob at a time around the defaults, predictor refitted at each point:
    proxy ratio, leaf sample fraction per predictor iteration, quantisation bits (uniform grids of those depths,
    ``learned_steps=False``: on a rate-trained scene encode otherwise quantises on the learned grids and the bit
-   knobs change nothing), zstd level, predictor depth;
+   knobs change nothing), zstd level, predictor depth, entropy coding, position coding (lossless: encodes that decode
+   to the same scene share one evaluation);
 4b. the rate-distortion sweep: fits at the main budget with the rate term (``fit --lambda-rate``, ``RATE_LAMBDAS``),
    each encoded with the defaults (entropy model, learned grids) and evaluated: with the main fit (the default
    1e-4) they are the RD curve of the entropy model (issue #17);

@@ -57,10 +57,10 @@ def _stderr(msg: str) -> None:
                     "fitted to the scene (scene format 4); zstd: zstd alone (scene format 2); auto: the model where "
                     "it is smaller.")
 @encode_option("--entropy-iters", show_default=True, type=int, help="Iterations fitting the entropy model.")
-@encode_option("--positions", show_default=True, type=click.Choice(["delta", "octree"]),
-               help="Grid positions: per-axis deltas in Morton order (zstd), or an octree of them, binary "
-                    "arithmetic-coded (scene format 6: a third to a half fewer position bytes; older readers "
-                    "refuse it).")
+@encode_option("--positions", show_default=True, type=click.Choice(["octree", "delta"]),
+               help="Grid positions: an octree of them, binary arithmetic-coded (scene format 6: a third to a half "
+                    "fewer position bytes), or per-axis deltas in Morton order (zstd; scene formats 2-5, for "
+                    "readers older than format 6).")
 @encode_option("--lambda-rate", show_default=True, type=click.FloatRange(0.0),
                help="With distillation: weight of the rate term (noise quantisation, learned steps per channel).")
 @encode_option("--quant-cells", show_default=True, type=click.IntRange(0, 32),

@@ -87,9 +87,10 @@ class EncodeConfig:
     # smaller than zstd's sections (small scenes: the nets' fixed cost does not pay). Predicted offsets and float32
     # attributes use zstd.
     entropy: str = "auto"
-    # grid positions: "delta" (Morton-ordered per-axis deltas, zstd) or "octree" (an octree's child masks, binary ANS
-    # under per-level contexts: scene format 6; bonsai's 110k anchors 114 KB against 195 KB; SPEC.md section 4)
-    positions: str = "delta"
+    # grid positions: "octree" (an octree's child masks, binary ANS under per-level contexts: scene format 6; bonsai's
+    # 110k anchors 114 KB against 195 KB; SPEC.md section 4) or "delta" (Morton-ordered per-axis deltas, zstd: the
+    # formats 2-5 that older readers read). [D] Lossless, so the default: the same scene in fewer bytes.
+    positions: str = "octree"
     entropy_iters: int = 1500  # Adam iterations fitting the entropy model to the scene's symbols
     entropy_hidden: int = 16  # [D] lego at lambda 1e-4: 142,760 B against 146,315 B with 32 (nets halved, stream +1.3 KB)
     # Rate in distillation's loss (``FitConfig.lambda_rate``): noise quantisation with learned steps per channel.

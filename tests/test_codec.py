@@ -132,16 +132,22 @@ class TestExactness:
         assert (~mask).sum() == report.leaves > 0
 
     def test_weights_are_packed_and_scene_format_1_stays_readable(self, encoded, tmp_path):
-        """Scene format 2 packs the ~50 weight tensors into a few sections per network; a format-1 file (one
-        section per tensor, no layout) decodes to the same model in both decoders."""
+        """Scene formats 2-6 pack the ~50 weight tensors into a few sections per network (the default, octree
+        positions, writes format 6); a format-1 file (one section per tensor, no layout) decodes to the same model
+        in both decoders."""
         from proxycodec import lite
 
-        _, path, report = encoded
+        model, default_path, report = encoded
         names = [s["name"] for s in report.sections]
-        assert report.meta["scene_format"] == 2
+        assert report.meta["scene_format"] == 6 and report.meta["features"] == ["octree"]
         assert sorted(n for n in names if n.split("/")[0] in ("decoder", "predictor")) == [
             "decoder/packed.f2", "decoder/packed.f4", "decoder/packed.i1",
             "predictor/packed.f2", "predictor/packed.f4", "predictor/packed.i1"]
+        from test_entropy import stored_digest
+
+        path = tmp_path / "delta.pxc"  # format 1 had delta positions only
+        assert codec.encode(model, path, **FAST, positions="delta").meta["scene_format"] == 2
+        assert stored_digest(path) == stored_digest(default_path)  # the same scene and symbols
         c = read_scene_container(path)
         old = tmp_path / "v1.pxc"
         write_container(old, {k: v for k, v in c.meta.items() if k != "weights_layout"} | {"scene_format": 1},
@@ -232,7 +238,8 @@ class TestDeterminism:
         codec.encode(m, tmp_path / "a.pxc", **FAST)
         codec.encode(shuffled, tmp_path / "b.pxc", **FAST)
         a, b = read_container(tmp_path / "a.pxc"), read_container(tmp_path / "b.pxc")
-        for k in ("anchors/grid", "anchors/proxy_mask", "anchors/scalings", "anchors/offsets", "proxy/features"):
+        for k in ("anchors/octree", "anchors/octree_p", "anchors/proxy_mask", "anchors/scalings", "anchors/offsets",
+                  "proxy/features"):
             assert np.array_equal(a.arrays[k], b.arrays[k]), k
 
 
@@ -371,7 +378,7 @@ class TestStats:
         assert s["bits_per_anchor"] == pytest.approx(8 * s["file_bytes"] / s["anchors"])
         assert s["source_bytes"] > s["file_bytes"] and s["ratio"] == pytest.approx(s["source_bytes"] / s["file_bytes"])
         names = {x["name"] for x in s["sections"]}
-        assert {"meta", "anchors/grid", "anchors/proxy_mask", "anchors/scalings", "proxy/features",
+        assert {"meta", "anchors/octree", "anchors/proxy_mask", "anchors/scalings", "proxy/features",
                 "anchors/offsets"} <= names
 
     def test_ply_stats(self, tmp_path):
@@ -396,7 +403,7 @@ class TestCli:
         assert r.exit_code == 0 and json.loads(r.output)["anchors"] == 150
         r = run(cli, ["stats", str(pxc)])
         assert r.exit_code == 0 and "bits/anchor" in r.output and "proxy/features" in r.output
-        assert "(scene format 2)" in r.output
+        assert "(scene format 6: octree)" in r.output
         r = run(cli, ["stats", str(ply)])
         assert r.exit_code == 0 and "150 anchors" in r.output
         cams = tmp_path / "cams.json"

@@ -214,7 +214,7 @@ def test_distillation_with_the_rate_term_stores_its_learned_grids(pair, tmp_path
     assert rated.file_bytes < dist.file_bytes
     # encode --quant-cells: distillation's rate term learns per-cell levels too (scene format 5)
     cells = codec.encode(m, tmp_path / "cells.pxc", **{**QUICK, "lambda_rate": 1e-2, "distill_iters": 60,
-                                                      "quant_cells": 2})
+                                                      "quant_cells": 2, "positions": "delta"})
     assert cells.meta["scene_format"] == 5 and cells.meta["quant"]["offsets"]["levels"]["cells"] == 2
     assert codec.decode(cells.path).scene.offsets.shape == m.scene.offsets.shape
 

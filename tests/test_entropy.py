@@ -22,7 +22,7 @@ pytestmark = pytest.mark.usefixtures("one_thread")
 
 GOLDEN = Path(__file__).resolve().parent / "golden"
 GOLDEN_KNOBS = dict(distill=False, predictor_iters=15, predictor_hidden=16, predictor_blocks=1, zstd_level=19,
-                    entropy_iters=200, entropy_hidden=8, max_cameras=2)
+                    entropy_iters=200, entropy_hidden=8, max_cameras=2, positions="delta")  # formats 2, 4, 5
 
 
 def golden_scene():
@@ -209,8 +209,8 @@ def both(tmp_path_factory):
 
     model = tiny_model()
     d = tmp_path_factory.mktemp("entropy")
-    r4 = codec.encode(model, d / "m.pxc", **FAST, entropy_iters=300, entropy="model")
-    r2 = codec.encode(model, d / "z.pxc", **FAST, entropy="zstd")
+    r4 = codec.encode(model, d / "m.pxc", **FAST, entropy_iters=300, entropy="model", positions="delta")
+    r2 = codec.encode(model, d / "z.pxc", **FAST, entropy="zstd", positions="delta")
     return r4, r2
 
 
@@ -454,7 +454,8 @@ def test_auto_keeps_zstd_where_the_nets_do_not_pay(both, tmp_path, monkeypatch):
         for k, v in limits.items():
             monkeypatch.setattr(codec, k, v)
         log = []
-        rep = codec.encode(tiny_model(), tmp_path / f"{name}.pxc", **FAST, entropy_iters=300, progress=log.append)
+        rep = codec.encode(tiny_model(), tmp_path / f"{name}.pxc", **FAST, entropy_iters=300, progress=log.append,
+                           positions="delta")  # as ``both``: formats 2 and 4
         return rep.meta["scene_format"], [s for s in log if s.startswith("entropy model:")]
 
     fmt, log = auto("big", AUTO_MAX_SAVING=0.0)

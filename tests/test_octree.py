@@ -100,8 +100,8 @@ def test_corrupt_streams_are_refused_and_bounded():
 def pair(tmp_path_factory):
     d = tmp_path_factory.mktemp("octree")
     m = tiny_model(300)
-    codec.encode(m, d / "delta.pxc", **FAST)
-    codec.encode(m, d / "octree.pxc", **FAST, positions="octree")
+    codec.encode(m, d / "delta.pxc", **FAST, positions="delta")
+    codec.encode(m, d / "octree.pxc", **FAST)  # the default
     return m, d / "delta.pxc", d / "octree.pxc"
 
 
@@ -124,7 +124,7 @@ def test_an_octree_container_decodes_to_the_delta_containers_scene(pair):
 
 def test_same_scene_same_bytes(pair, tmp_path):
     m, _, oct_ = pair
-    codec.encode(m, tmp_path / "again.pxc", **FAST, positions="octree")
+    codec.encode(m, tmp_path / "again.pxc", **FAST)
     assert (tmp_path / "again.pxc").read_bytes() == oct_.read_bytes()
 
 
@@ -167,10 +167,13 @@ def test_bad_coding_name_and_cli(tmp_path):
         codec.encode(m, tmp_path / "x.pxc", positions="kd")
     assert not (tmp_path / "x.pxc").exists()
     ply, _ = m.save(tmp_path / "s.ply")
-    r = CliRunner().invoke(cli, ["encode", str(ply), "-o", str(tmp_path / "s.pxc"), "--positions", "octree",
+    r = CliRunner().invoke(cli, ["encode", str(ply), "-o", str(tmp_path / "s.pxc"), "--predictor-iters", "10"])
+    assert r.exit_code == 0, r.output
+    assert read_container(tmp_path / "s.pxc").meta["scene_format"] == 6  # octree positions: the default
+    r = CliRunner().invoke(cli, ["encode", str(ply), "-o", str(tmp_path / "d.pxc"), "--positions", "delta",
                                  "--predictor-iters", "10"])
     assert r.exit_code == 0, r.output
-    assert read_container(tmp_path / "s.pxc").meta["scene_format"] == 6
+    assert read_container(tmp_path / "d.pxc").meta["scene_format"] == 2  # deltas: the formats older readers read
     r = CliRunner().invoke(cli, ["stats", str(tmp_path / "s.pxc")])
     assert r.exit_code == 0 and "anchors/octree" in r.output and "positions grid octree" in r.output, r.output
     assert "(scene format 6: octree)" in r.output

@@ -466,7 +466,7 @@ def test_cli_encode_decode_render_stats_on_an_output_folder(tmp_path):
     run = CliRunner()
     out = tmp_path / "scene.pxc"
     r = run.invoke(_cli(), ["encode", str(root), "-o", str(out), "--predictor-iters", "30", "--distill-iters", "3",
-                                 "--distill-views", "8"])
+                                 "--distill-views", "8", "--positions", "delta"])
     assert r.exit_code == 0, r.output
     meta = read_container(out).meta
     dec = meta["decoder"]

@@ -309,7 +309,7 @@ def test_encode_sweep_plan_centres_on_the_defaults():
     ids = {knob_id(k) for _, _, k in plan}
     assert "encode default (refit)" in ids and "encode proxy_ratio=0.1" in ids
     assert {"encode entropy=zstd", "encode entropy=model"} <= ids  # the default is "auto"
-    assert "encode positions=octree" in ids  # the default is "delta"
+    assert "encode positions=delta" in ids  # the default is "octree"
     bits = [k for n, _, k in plan if n == "bits"]
     assert bits and all(k["learned_steps"] is False for k in bits)  # else inert on a rate-trained scene
     assert "encode learned_steps=False, offset_bits=6" in ids
@@ -355,7 +355,7 @@ def test_bench_quick_end_to_end_in_process(tiny, tmp_path):
     z3 = pts["encode zstd_level=3"]
     assert z3["quality_from"] in ("encode default", "encode default (refit)") and z3["decode_seconds"] is not None
     assert z3["psnr_avg"] == pts["encode default (refit)"]["psnr_avg"]
-    oc = pts["encode positions=octree"]  # lossless: the same decoded scene, so the same evaluation, other bytes
+    oc = pts["encode positions=delta"]  # lossless: the same decoded scene, so the same evaluation, other bytes
     assert oc["quality_from"] in ("encode default", "encode default (refit)") and oc["bytes"] != z3["bytes"]
     assert oc["psnr_avg"] == pts["encode default (refit)"]["psnr_avg"]
     # ... which holds because they are the same scene: the shared evaluation is earned, not assumed
@@ -364,7 +364,7 @@ def test_bench_quick_end_to_end_in_process(tiny, tmp_path):
 
     pxc = {p.stem: p for p in (out / "work").rglob("*.pxc")}
     ref = codec.decode(pxc[safe_name(z3["quality_from"])]).scene
-    for pid in ("encode zstd_level=3", "encode positions=octree"):
+    for pid in ("encode zstd_level=3", "encode positions=delta"):
         got = codec.decode(pxc[safe_name(pid)]).scene
         for k in ("positions", "features", "offsets", "scalings"):
             assert torch.equal(getattr(got, k), getattr(ref, k)), (pid, k)

@@ -366,7 +366,8 @@ class TestFit:
         k1 = (off - np.asarray(grids["offsets"]["origin"])) / np.asarray(grids["offsets"]["step"])
         assert np.abs(k1 - np.rint(k1)).max() > 0.1  # not on the per-channel grid alone
         for entropy in ("zstd", "model"):
-            rep = encode(out, tmp_path / f"c_{entropy}.pxc", max_cameras=1, entropy=entropy, entropy_iters=50)
+            rep = encode(out, tmp_path / f"c_{entropy}.pxc", max_cameras=1, entropy=entropy, entropy_iters=50,
+                         positions="delta")
             assert rep.meta["scene_format"] == 5 and rep.meta["quant"]["offsets"]["levels"]["cells"] == 3
             assert ("entropy" in rep.meta) == (entropy == "model")
             cells = position_cells(pos, voxel, 3)  # offsets: every anchor's, one entry per occupied cell and kind
