@@ -136,6 +136,7 @@ class TestExactness:
         positions, writes format 6); a format-1 file (one section per tensor, no layout) decodes to the same model
         in both decoders."""
         from proxycodec import lite
+        from test_entropy import stored_digest
 
         model, default_path, report = encoded
         names = [s["name"] for s in report.sections]
@@ -143,8 +144,6 @@ class TestExactness:
         assert sorted(n for n in names if n.split("/")[0] in ("decoder", "predictor")) == [
             "decoder/packed.f2", "decoder/packed.f4", "decoder/packed.i1",
             "predictor/packed.f2", "predictor/packed.f4", "predictor/packed.i1"]
-        from test_entropy import stored_digest
-
         path = tmp_path / "delta.pxc"  # format 1 had delta positions only
         assert codec.encode(model, path, **FAST, positions="delta").meta["scene_format"] == 2
         assert stored_digest(path) == stored_digest(default_path)  # the same scene and symbols
