@@ -23,6 +23,9 @@ from .common import config_option, user_errors
 @click.option("--in-process", is_flag=True,
               help="Run every step in this process (faster start; peak RSS is then the whole run's, not per step).")
 @click.option("--fresh", is_flag=True, help="Ignore the results of an earlier run in the folder (default: resume).")
+@click.option("--any-code", is_flag=True,
+              help="Reuse the steps an earlier run recorded with other code too (default: a step whose code changed "
+                   "runs again).")
 @click.option("--predictor-iters", type=int, default=None,
               help="Encode-time predictor iterations at every point [default: encode's default, 2000].")
 @click.option("--distill-iters", type=int, default=None,
@@ -32,8 +35,8 @@ from .common import config_option, user_errors
                help="Encode seed (proxy selection, predictor).")
 @click.option("--backend", default="auto", show_default=True, type=click.Choice(["auto", "reference", "cpu", "cuda"]))
 @user_errors
-def bench(scene, dataset, out_dir, quick, views, max_width, test_every, sweeps, in_process, fresh, predictor_iters,
-          distill_iters, seed, backend) -> None:
+def bench(scene, dataset, out_dir, quick, views, max_width, test_every, sweeps, in_process, fresh, any_code,
+          predictor_iters, distill_iters, seed, backend) -> None:
     """Sweep the encode settings (proxy ratio, leaf sample fraction, quantisation bits, zstd level, predictor depth)
     on SCENE (an anchor PLY + weights, e.g. from `proxycodec fit`) and evaluate every container on DATASET's test
     views: bytes, PSNR/SSIM over ten resolutions, encode/decode/render times, peak RSS per step. Writes
@@ -53,7 +56,7 @@ def bench(scene, dataset, out_dir, quick, views, max_width, test_every, sweeps, 
     out = out_dir or str(Path(scene).with_name(Path(scene).stem + "_bench"))
     paths = run_bench(scene, dataset, out, quick=quick, views=views, max_width=max_width, test_every=test_every,
                       sweeps=[s.strip() for s in sweeps.split(",") if s.strip()] if sweeps else None,
-                      isolate=not in_process, fresh=fresh, backend=backend, predictor_iters=predictor_iters,
+                      isolate=not in_process, fresh=fresh, any_code=any_code, backend=backend, predictor_iters=predictor_iters,
                       distill_iters=distill_iters, seed=seed,
                       log=lambda s: click.echo(s, err=True))
     click.echo(Path(paths["markdown"]).read_text())

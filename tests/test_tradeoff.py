@@ -379,9 +379,11 @@ def test_bench_quick_end_to_end_in_process(tiny, tmp_path):
     assert "lpips_avg" in d and (d["lpips_avg"] is None) == (not ok or SIZE < MIN_SIDE)
 
 
-def test_bench_subprocess_steps_and_resume(tiny, tmp_path):
-    """The real path: every step in its own process (per-step RSS); a second run reuses every step."""
+def test_bench_subprocess_steps_and_resume(tiny, tmp_path, monkeypatch):
+    """The real path: every step in its own process (per-step RSS); a second run reuses every step, with the folder
+    named relatively too; other code reuses them only with ``any_code``."""
     from proxycodec.bench import run_bench
+    from proxycodec.bench import runner as R
 
     data, ply = tiny
     out = tmp_path / "s"
@@ -394,10 +396,15 @@ def test_bench_subprocess_steps_and_resume(tiny, tmp_path):
     assert all(s["result"]["peak_rss_mb"] > 10 for s in steps.values())
     assert {s["kind"] for s in steps.values()} == {"encode", "eval"}
     n_logged = len(logs)
-    run_bench(str(ply), str(data), str(out), quick=True, views=1, sweeps=["zstd_level"], predictor_iters=50, distill_iters=5,
+    monkeypatch.chdir(tmp_path)  # the same folder, named relatively: the same steps
+    run_bench(str(ply), str(data), "s", quick=True, views=1, sweeps=["zstd_level"], predictor_iters=50, distill_iters=5,
               log=logs.append)
     assert len(logs) == n_logged  # nothing ran again
     assert len(json.loads((out / "results.json").read_text())["runs"]) == 2
+    monkeypatch.setattr(R, "code_key", lambda: "other code")
+    run_bench(str(ply), str(data), str(out), quick=True, views=1, sweeps=["zstd_level"], predictor_iters=50, distill_iters=5,
+              any_code=True, log=logs.append)
+    assert len(logs) == n_logged  # other code, told to reuse: nothing ran again
 
 
 def _steps_without_timing(path) -> dict:

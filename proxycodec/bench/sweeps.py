@@ -166,14 +166,19 @@ def run_encode_sweeps(runner: Runner, scene: str, source_ply: str | os.PathLike,
 def run_bench(scene_ply: str, dataset: str, out_dir: str, *, quick: bool = False, views: int | None = None,
               max_width: int | None = None, test_every: int = 8, sweeps: Sequence[str] | None = None,
               isolate: bool = True, fresh: bool = False, seed: int = 0, backend: str = "auto",
-              predictor_iters: int | None = None, distill_iters: int | None = None,
+              predictor_iters: int | None = None, distill_iters: int | None = None, any_code: bool = False,
               log: Callable[[str], None] | None = None) -> dict[str, Path]:
-    """``proxycodec bench``: the encode-side sweeps on a user's fitted scene (anchor PLY + weights sidecar)."""
+    """``proxycodec bench``: the encode-side sweeps on a user's fitted scene (anchor PLY + weights sidecar).
+
+    ``out_dir`` is resolved to an absolute path, as the scene and the dataset are: steps are keyed by their arguments,
+    so the same folder named relatively and absolutely is one cache. ``any_code``: reuse the steps recorded by other
+    code too (``Runner``), e.g. to add sweep points to a run after a change that does not touch them."""
     from ..formats.container import read_container
     from ..model import weights_path_for
 
     scene_ply = str(Path(scene_ply).resolve())
     dataset = str(Path(dataset).resolve())
+    out_dir = str(Path(out_dir).resolve())
     w = weights_path_for(scene_ply)
     if not Path(scene_ply).is_file() or not w.is_file():
         raise ProxycodecError(f"bench needs an anchor PLY with its weights sidecar ({w.name})", scene_ply)
@@ -193,7 +198,7 @@ def run_bench(scene_ply: str, dataset: str, out_dir: str, *, quick: bool = False
             "scenes": {name: {"scene": scene_ply, "dataset": dataset, "reference width": max_width,
                               "test views evaluated": views, "fit seconds (from the weights file)":
                                   fit_meta.get("seconds")}}}
-    runner = Runner(out_dir, meta, isolate=isolate, fresh=fresh, log=log)
+    runner = Runner(out_dir, meta, isolate=isolate, fresh=fresh, log=log, any_code=any_code)
     fit_rec = None
     if fit_meta.get("seconds") is not None:  # the scene's own training time, for the PSNR-vs-time plot
         fit_rec = {"status": "ok", "result": {"seconds": fit_meta.get("seconds"),
