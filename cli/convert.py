@@ -51,7 +51,8 @@ def make_config(iters, time_budget, seed, voxel_size, views, view_size, backgrou
 @click.option("-o", "--out", required=True, type=click.Path(dir_okay=False),
               help="Anchor PLY to write (weights go beside it as OUT.weights.pxc).")
 @click.option("--iters", type=int, default=None, help="Training iterations [default: 4000 without --time-budget].")
-@click.option("--time-budget", type=float, default=None, help="Seconds of training; schedules follow elapsed time.")
+@click.option("--time-budget", type=float, default=None,
+              help="Seconds of training steps (the renderer's warm-up excluded); schedules follow elapsed time.")
 @click.option("--seed", type=int, default=0, show_default=True)
 @convert_options
 @click.option("--resume", is_flag=True, help="Continue from OUT's checkpoint (OUT.ckpt.pxc).")

@@ -40,7 +40,9 @@ _no_undistort_option = click.option(
 @click.option("-o", "--out", default="scene.ply", show_default=True, type=click.Path(dir_okay=False),
               help="Anchor PLY to write (weights go beside it as OUT.weights.pxc); with --explicit an INRIA 3DGS PLY.")
 @click.option("--iters", type=int, default=None, help="Training iterations [default: 3000 without --time-budget].")
-@click.option("--time-budget", type=float, default=None, help="Seconds of training; schedules follow elapsed time.")
+@click.option("--time-budget", type=float, default=None,
+              help="Seconds of training steps (the renderer's warm-up and checkpoints excluded); schedules follow "
+                   "elapsed time.")
 @fit_option("--max-width", type=int, show_default=True,
             help="100% reference width (3DGS rule: wider images are downscaled to it).")
 @fit_option("--seed", type=int, show_default=True)

@@ -359,9 +359,23 @@ def timed_step(tr: TrainingRun, log_every: float, last_log: float, log: Progress
     return st, True
 
 
+def warm_up_renderer(tr: TrainingRun, log: ProgressFn) -> float:
+    """``render.warm_up`` on the run's device and backend, outside ``tr.elapsed``: a time budget buys training, not
+    numba's first compilation (~30 s in a process with an empty kernel cache, on 2 cores). -> its seconds."""
+    from .render import warm_up
+
+    seconds = warm_up(getattr(tr.cfg, "backend", "auto"), getattr(tr, "device", None))
+    if seconds >= 1.0:
+        log(f"renderer ready in {seconds:.1f} s (kernels compiled or loaded; not counted as training time)")
+    return seconds
+
+
 def run_until_done(tr: TrainingRun, log: ProgressFn, detail, hist_extra,
                    between_steps: Callable[[float], None] | None = None) -> None:
-    """``timed_step`` until the run is done; ``between_steps(now)`` after each step (checkpoints, test stops)."""
+    """``timed_step`` until the run is done (the renderer warmed up first, off the clock: ``warm_up_renderer``);
+    ``between_steps(now)`` after each step (checkpoints, test stops)."""
+    if not tr.done():
+        warm_up_renderer(tr, log)
     last_log = time.perf_counter()
     while not tr.done():
         _, logged = timed_step(tr, tr.cfg.log_every, last_log, log, detail, hist_extra)

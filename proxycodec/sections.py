@@ -770,6 +770,9 @@ def entropy_sections(emeta: dict, sections: dict[str, np.ndarray], pos: np.ndarr
     from . import entropy  # noqa: PLC0415  (constriction is imported only for such files)
 
     bits = {k: quant[k]["bits"] for k in entropy.NETS}
+    coded = emeta.get("bits", bits)  # the depths the stream was coded at (written since format 4): must be the quant's
+    if not isinstance(coded, dict) or any(coded.get(k) != b for k, b in bits.items()):
+        raise err(f"the entropy stream's bit depths {coded} differ from the quantisation's {bits}")
     a = entropy.decode(emeta, sections, entropy.Context.of(pos, voxel, mask), Fd, K, bits, err)
     P = int(mask.sum())
 

@@ -335,6 +335,9 @@ HOSTILE = {
     "no_entropy_meta": (lambda m: {k: v for k, v in m.items() if k != "entropy"}, None),
     "format_2_claimed": (lambda m: {**m, "scene_format": 2}, None),
     "bits_float": (lambda m: {**m, "quant": {**m["quant"], "offsets": {"bits": 32}}}, None),
+    "entropy_bits_other": (lambda m: {**m, "entropy": {**m["entropy"], "bits": {
+        **m["entropy"]["bits"], "offsets": m["entropy"]["bits"]["offsets"] - 2}}}, None),
+    "entropy_bits_not_a_dict": (lambda m: {**m, "entropy": {**m["entropy"], "bits": [8, 8, 8]}}, None),
 }
 
 

@@ -51,6 +51,36 @@ def _fit(data, out, cfg, **kw):
     return fit(data, out, cfg, dataset_root="tiny", log=lambda s: None, **kw)
 
 
+def test_the_renderer_warms_up_off_the_clock_and_changes_nothing(data, tmp_path, monkeypatch):
+    """Every trainer (``loop.run_until_done``) renders once before its clock starts, so a time budget buys training
+    and not numba's first compilation; the warm-up changes no result."""
+    import time
+
+    from proxycodec import render
+
+    state = torch.get_rng_state()
+    assert render.warm_up("cpu") >= 0.0 and torch.equal(torch.get_rng_state(), state)  # no random stream drawn
+    calls, real = [], render.warm_up
+
+    def slow(backend="auto", device=None):  # as a first compilation would be
+        calls.append(backend)
+        time.sleep(5.0)
+        return 5.0 + real(backend, device)
+
+    monkeypatch.setattr(render, "warm_up", slow)
+    logs = []
+    from proxycodec.train import fit
+
+    a = fit(data, tmp_path / "a.ply", small_config(iters=12), dataset_root="tiny", log=logs.append)
+    assert calls == ["auto"] and sum("renderer ready in" in s for s in logs) == 1
+    assert a.history[0]["it"] == 1 and a.history[0]["seconds"] < 5.0  # the clock after one step: no warm-up in it
+    monkeypatch.setattr(render, "warm_up", lambda *args, **kw: 0.0)
+    b = fit(data, tmp_path / "b.ply", small_config(iters=12), dataset_root="tiny", log=lambda s: None)
+    assert (tmp_path / "a.ply").read_bytes() == (tmp_path / "b.ply").read_bytes()
+    for k, v in a.model.decoder.state_dict().items():
+        assert torch.equal(v, b.model.decoder.state_dict()[k]), k
+
+
 def _assert_stored_as_fitted(fitted, decoded) -> None:
     """The container's offsets and scalings are the fitted scene's (matched by position; float32 rounding only)."""
     pos, dpos = fitted.positions.numpy(), decoded.positions.numpy()
