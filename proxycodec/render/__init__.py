@@ -149,9 +149,10 @@ def warm_up(backend: str = "auto", device=None) -> float:
     import torch
 
     from ..camera import Camera
+    from ..devices import as_device
 
     t0 = time.perf_counter()
-    dev = torch.device("cpu") if device is None else torch.device(device)
+    dev = as_device(device)
     u = torch.linspace(-1.0, 1.0, 64, dtype=torch.float32)
     means = torch.stack([0.8 * u, 0.6 * torch.sin(5.0 * u), 0.3 * torch.cos(3.0 * u)], 1).to(dev).requires_grad_()
     quats = torch.stack([torch.ones_like(u), 0.3 * u, 0.2 * u.flip(0), 0.1 * u], 1).to(dev).requires_grad_()
