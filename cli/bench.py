@@ -56,8 +56,8 @@ def bench(scene, dataset, out_dir, quick, views, max_width, test_every, sweeps, 
     out = out_dir or str(Path(scene).with_name(Path(scene).stem + "_bench"))
     paths = run_bench(scene, dataset, out, quick=quick, views=views, max_width=max_width, test_every=test_every,
                       sweeps=[s.strip() for s in sweeps.split(",") if s.strip()] if sweeps else None,
-                      isolate=not in_process, fresh=fresh, any_code=any_code, backend=backend, predictor_iters=predictor_iters,
-                      distill_iters=distill_iters, seed=seed,
+                      isolate=not in_process, fresh=fresh, any_code=any_code, backend=backend,
+                      predictor_iters=predictor_iters, distill_iters=distill_iters, seed=seed,
                       log=lambda s: click.echo(s, err=True))
     click.echo(Path(paths["markdown"]).read_text())
     click.echo("wrote " + ", ".join(str(p) for p in paths.values()))

@@ -198,8 +198,8 @@ class TrainingRun:
     """Where a run stands (``cfg.iters`` and/or ``cfg.time_budget`` against ``iteration`` and ``elapsed``) and the
     one step sequence of every trainer.
 
-    A subclass sets ``data``, ``cfg`` (with ``iters``, ``time_budget``), ``rng``, ``opt`` (an ``optim.Adam``) and
-    ``images`` (targets), calls ``_start_run()``, and implements ``train_step`` with ``sample_view`` and
+    A subclass sets ``data``, ``cfg`` (with ``iters``, ``time_budget``, ``backend``), ``device``, ``rng``, ``opt`` (an
+    ``optim.Adam``) and ``images`` (targets), calls ``_start_run()``, and implements ``train_step`` with ``sample_view`` and
     ``optimise``, plus the hooks ``observe`` and ``after_step``.
     """
 
@@ -364,7 +364,7 @@ def warm_up_renderer(tr: TrainingRun, log: ProgressFn) -> float:
     numba's first compilation (~30 s in a process with an empty kernel cache, on 2 cores). -> its seconds."""
     from .render import warm_up
 
-    seconds = warm_up(getattr(tr.cfg, "backend", "auto"), getattr(tr, "device", None))
+    seconds = warm_up(tr.cfg.backend, tr.device)
     if seconds >= 1.0:
         log(f"renderer ready in {seconds:.1f} s (kernels compiled or loaded; not counted as training time)")
     return seconds
