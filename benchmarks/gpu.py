@@ -13,8 +13,11 @@ Stages (benchmarks/README.md, "GPU runs"), in the order --stages gives (default:
   f  render command; in-process micro-benchmark: torch projection + cuda compositor against the reference, and
      the projection alone, ours against gsplat's fused one, on the same Gaussians
   g  plain 3DGS (fit --explicit) on bonsai for stage d's budget, eval at 10%..100%, ours minus it per size, its SPZ
+  n  encode of stage d's fit as fitted (the container stage g's SPZ is compared with), stats
   x  stage d at the former default density (fit --voxel-rule extent) for d's budget, eval at 10%..100%, stage d
      minus it per size (stage d fits at the default, Scaffold-GS's density, since 2026-11-27)
+Stage d copies its fitted PLY and weights, and stage n its container, into OUT/fits/ (the PLY in parts of at most
+15 MiB, the device tool's limit per file: `cat bonsai.ply.part* > bonsai.ply`), to be evaluated and encoded on a CPU.
 Each stage has its own wall-clock limit and the run a total deadline (later stages are then skipped); a failing
 stage is recorded and the next one runs. gpu.json, gpu.md and logs.tar.gz are rewritten after every stage.
 """
@@ -332,8 +335,23 @@ def stage_b(R: Run, rec: dict) -> None:
                    f"{CPU['lego_psnr']['psnr_avg']} dB after 10,220 it")
 
 
+def keep(R: Run, rec: dict, *paths: Path) -> None:
+    """Copy ``paths`` into OUT/fits/, each in parts of at most 15 MiB (the device tool returns files of at most
+    16 MiB); their names and sizes into ``rec["kept"]``."""
+    part, dest = 15 * 2**20, R.out / "fits"
+    dest.mkdir(exist_ok=True)
+    for path in paths:
+        data = path.read_bytes()
+        names = [path.name] if len(data) <= part else [f"{path.name}.part{i:02d}" for i in range(-(-len(data) // part))]
+        for i, name in enumerate(names):
+            (dest / name).write_bytes(data[i * part:(i + 1) * part])
+        rec.setdefault("kept", {})[path.name] = {"bytes": len(data), "files": names}
+
+
 def stage_d(R: Run, rec: dict) -> None:
     fit_eval(R, rec, "d", "bonsai", 800, R.args.budget_bonsai, "0.25" if R.args.smoke else LEGO_RES)
+    ply = R.work / "bonsai.ply"
+    keep(R, rec, ply, ply.with_suffix(".weights.pxc"))
     rec["cpu"] += (" (CPU at 400 px, the GPU at 4x the pixels)" + before_text(R, rec, "bonsai_fit")
                    + " (that run had the extent / 128 density: stage x is like for like)")
 
@@ -395,6 +413,26 @@ def stage_x(R: Run, rec: dict) -> None:
     rec["key"] += "; " + eval_text(ev)
     rec["cpu"] = (before_text(R, rec, "bonsai_fit").lstrip("; ")
                   + d_minus(rec, d, ev, "d_minus_x", "stage d (spacing) minus this"))
+
+
+def stage_n(R: Run, rec: dict) -> None:
+    """``encode`` of stage d's fit as fitted (its stage-2 predictor), on the device; the container's bytes against
+    stage g's SPZ (the acceptance: >= 10x smaller)."""
+    ply, pxc = R.work / "bonsai.ply", R.work / "bonsai.pxc"
+    if not ply.exists():
+        raise Skip("no bonsai fit (stage d)")
+    pxc.unlink(missing_ok=True)
+    small = ["--entropy-iters", 50] if R.args.smoke else []
+    r = R.cli("n_encode", ["encode", ply, "-o", pxc, "--json", "--seed", R.args.seed, *small], 400)
+    check(r)
+    j = json_out(r)
+    rec["encode"] = dict(brief(r), bytes=j["file_bytes"], ratio=j["ratio"], encode_seconds=j["seconds"])
+    rec["key"] = f"encode as fitted **{r['seconds']:.0f} s**, {j['file_bytes']:,} B ({j['ratio']:.1f}x PLY + weights)"
+    keep(R, rec, pxc)
+    spz = R.res["stages"].get("g", {}).get("spz_bytes")
+    if spz:
+        rec["spz_over_container"] = round(spz / j["file_bytes"], 2)
+        rec["cpu"] = f"SPZ of stage g's 3DGS / container: **{rec['spz_over_container']}x** (acceptance: >= 10x)"
 
 
 def stage_c(R: Run, rec: dict) -> None:
@@ -591,6 +629,7 @@ STAGES = {"a": ("pytest -m cuda", stage_a, lambda a: 300),
           "e": ("3DGS fit, convert, encode", stage_e, lambda a: a.budget_explicit + 420),
           "f": ("render, micro-benchmark", stage_f, lambda a: 150),
           "g": ("bonsai plain 3DGS at d's budget + eval", stage_g, lambda a: a.budget_bonsai + 200),
+          "n": ("bonsai encode as fitted (stage d's fit)", stage_n, lambda a: 420),
           "x": ("bonsai fit at the extent / 128 density, d's budget + eval", stage_x,
                 lambda a: a.budget_bonsai + 200)}
 
