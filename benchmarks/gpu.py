@@ -62,13 +62,16 @@ CPU = {
     "raster": {"ms": 196, "source": 'SPEC.md section 2 ("Rasterizer"): numba cpu backend, 100k Gaussians at '
                "400 px, forward + backward"},
 }
-# Earlier GPU runs the same stage is compared with (benchmarks/README.md, "GPU runs"): whether a change to the step
-# (fewer launches and synchronisations since commit 5f76b9c) shows on the device.
+# The last GPU run of each stage's fit (benchmarks/README.md, "GPU runs"): whether a change to the training step shows
+# on the device. Compared as it/s; marked as not comparable when this run's GPU is another.
 GPU_BEFORE = {
-    "bonsai_fit": {"iterations": 2232, "seconds": 150, "gpu": "NVIDIA H100 80GB HBM3", "source": "stage d at commit "
-                   "5f76b9c: 14.88 it/s (stage 1 ~25, stage 2 ~14.5), 2,780 operations per stage-2 step"},
-    "bonsai_3dgs": {"iterations": 10090, "seconds": 150, "gpu": "NVIDIA H100 80GB HBM3",
-                    "source": "stage g at commit 5f76b9c: 67.27 it/s"},
+    "bonsai_fit": {"iterations": 2249, "seconds": 120, "gpu": "NVIDIA H100 80GB HBM3", "commit": "a77e52d",
+                   "source": "stage d at commit a77e52d: 18.74 it/s (stage 1 ~20, stage 2 ~19.5), 97,298 anchors"},
+    "bonsai_3dgs": {"iterations": 7557, "seconds": 120, "gpu": "NVIDIA H100 80GB HBM3", "commit": "a77e52d",
+                    "source": "stage g at commit a77e52d: 62.98 it/s, 299,862 Gaussians"},
+    "bonsai_extent": {"iterations": 2769, "seconds": 120, "gpu": "NVIDIA H100 80GB HBM3", "commit": "a77e52d",
+                      "source": "stage x at commit a77e52d: 23.07 it/s (stage 1 ~27, stage 2 ~20), 23,647 anchors; "
+                                "14.88 it/s at 5f76b9c before the step's launches were cut"},
 }
 DONE = re.compile(r"done: (\d+) iterations in ([\d:]+)")
 PROG = re.compile(r"it\s+(\d+)/(\S+)\s+loss\s+([-\d.naif]+)\s+psnr\s+([-\d.naif]+).*?([\d:]+) elapsed")
@@ -352,8 +355,7 @@ def stage_d(R: Run, rec: dict) -> None:
     fit_eval(R, rec, "d", "bonsai", 800, R.args.budget_bonsai, "0.25" if R.args.smoke else LEGO_RES)
     ply = R.work / "bonsai.ply"
     keep(R, rec, ply, ply.with_suffix(".weights.pxc"))
-    rec["cpu"] += (" (CPU at 400 px, the GPU at 4x the pixels)" + before_text(R, rec, "bonsai_fit")
-                   + " (that run had the extent / 128 density: stage x is like for like)")
+    rec["cpu"] += " (CPU at 400 px, the GPU at 4x the pixels)" + before_text(R, rec, "bonsai_fit")
 
 
 def before_text(R: Run, rec: dict, key: str) -> str:
@@ -362,7 +364,7 @@ def before_text(R: Run, rec: dict, key: str) -> str:
     x = rec["fit"]["it_per_s"] / (b["iterations"] / b["seconds"])
     rec["vs_gpu_before"] = {"before_it_per_s": round(b["iterations"] / b["seconds"], 2), "ratio": round(x, 2),
                             "same_gpu": R.res["machine"].get("gpu") == b["gpu"], "source": b["source"]}
-    return f"; {x:.2f}x the {b['gpu']} run at 5f76b9c" + ("" if rec["vs_gpu_before"]["same_gpu"] else
+    return f"; {x:.2f}x the {b['gpu']} run at {b['commit']}" + ("" if rec["vs_gpu_before"]["same_gpu"] else
                                                           " (another GPU: not comparable)")
 
 
@@ -403,7 +405,7 @@ def d_minus(rec: dict, d: dict, ev: dict, field: str, label: str, tail: str = ""
 def stage_x(R: Run, rec: dict) -> None:
     """Stage d at the former default anchor density (`fit --voxel-rule extent`: extent / 128, about a quarter of
     the anchors) for stage d's training time on the same GPU, evaluated at the same sizes; per size, stage d's PSNR
-    minus this one's, and its it/s against the 5f76b9c run (which had this density)."""
+    minus this one's, and its it/s against the last run of this density."""
     data, ply, d = R.data("bonsai"), R.work / "bonsai_extent.ply", R.res["stages"].get("d", {})
     budget = (d.get("fit") or {}).get("budget_s") or R.args.budget_bonsai
     f = fit(R, rec, "x_fit", data, ply, 800, budget, ["--voxel-rule", "extent"])
@@ -411,7 +413,7 @@ def stage_x(R: Run, rec: dict) -> None:
                   f"{f.get('anchors', '?')} anchors")
     ev = rec["eval"] = run_eval(R, "x_eval", ply, data, "0.25" if R.args.smoke else LEGO_RES)
     rec["key"] += "; " + eval_text(ev)
-    rec["cpu"] = (before_text(R, rec, "bonsai_fit").lstrip("; ")
+    rec["cpu"] = (before_text(R, rec, "bonsai_extent").lstrip("; ")
                   + d_minus(rec, d, ev, "d_minus_x", "stage d (spacing) minus this"))
 
 
