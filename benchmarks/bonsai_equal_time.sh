@@ -71,9 +71,9 @@ if want compare; then
     [ -f "$OUT/${n}_eval/eval.json" ] && args+=("$n=$OUT/${n}_eval/eval.json")
   done
   sizes=()
-  [ -f "$OUT/ours.pxc" ] && sizes+=(--bytes "ours_pxc=$(stat -c %s "$OUT/ours.pxc")")
-  [ -f "$OUT/extent.pxc" ] && sizes+=(--bytes "extent_pxc=$(stat -c %s "$OUT/extent.pxc")")
-  [ -f "$OUT/3dgs.spz" ] && sizes+=(--bytes "3dgs=$(stat -c %s "$OUT/3dgs.spz")")
+  [ -f "$OUT/ours.pxc" ] && sizes+=(--bytes "ours_pxc=$(stat -L -c %s "$OUT/ours.pxc")")
+  [ -f "$OUT/extent.pxc" ] && sizes+=(--bytes "extent_pxc=$(stat -L -c %s "$OUT/extent.pxc")")
+  [ -f "$OUT/3dgs.spz" ] && sizes+=(--bytes "3dgs=$(stat -L -c %s "$OUT/3dgs.spz")")
   base=()
   [ -f "$OUT/3dgs_eval/eval.json" ] && base=(--baseline 3dgs)
   python "$HERE/compare_evals.py" "${args[@]}" "${base[@]}" "${sizes[@]}" --paper mipnerf360 --out "$OUT/compare"
