@@ -45,7 +45,7 @@ def load_report(label: str, path: Path) -> dict:
     if not all(math.isfinite(v) for v in psnr):
         raise SystemExit(f"error: {path}: non-finite PSNR in the report")
     return {"label": label, "path": str(path), "xi": xi, "psnr": psnr, "ssim": ssim, "views": views,
-            "summary": rep.get("summary", {}), "scene": rep.get("scene")}
+            "summary": rep.get("summary", {}), "scene": rep.get("scene"), "dataset": rep.get("dataset")}
 
 
 def compare(reports: list[dict], baseline: str | None = None) -> dict:
@@ -104,8 +104,9 @@ def plot(res: dict, paper: dict[str, list[float]], path: Path) -> None:
             ax.plot(pct, row, linestyle="--", color="grey" if "3D-GS" in name else "black", alpha=0.6, label=name)
     ax.set_xlabel("resolution (% of the reference width)")
     ax.set_ylabel("PSNR (dB), held-out views")
-    scene = res["reports"][0].get("scene") or ""
-    ax.set_title(f"{scene}: PSNR against resolution")
+    first = res["reports"][0]  # titled by the dataset (its folder's name), else the evaluated file's stem
+    name = Path(first["dataset"]).name if first.get("dataset") else (first.get("scene") or "")
+    ax.set_title(f"{name}: PSNR against resolution")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
