@@ -16,8 +16,9 @@ Stages (benchmarks/README.md, "GPU runs"), in the order --stages gives (default:
   n  encode of stage d's fit as fitted (the container stage g's SPZ is compared with), stats
   x  stage d at the former default density (fit --voxel-rule extent) for d's budget, eval at 10%..100%, stage d
      minus it per size (stage d fits at the default, Scaffold-GS's density, since 2026-11-27)
-Stage d copies its fitted PLY and weights, and stage n its container, into OUT/fits/ (the PLY in parts of at most
-15 MiB, the device tool's limit per file: `cat bonsai.ply.part* > bonsai.ply`), to be evaluated and encoded on a CPU.
+Stage d copies its fitted PLY and weights, and stage n its container, into OUT/fits/ (the PLY in parts of
+at most 15 MiB, the device tool's limit per file: `cat bonsai.ply.part* > bonsai.ply`), to be evaluated and
+encoded on a CPU.
 Each stage has its own wall-clock limit and the run a total deadline (later stages are then skipped); a failing
 stage is recorded and the next one runs. gpu.json, gpu.md and logs.tar.gz are rewritten after every stage.
 """
@@ -62,16 +63,17 @@ CPU = {
     "raster": {"ms": 196, "source": 'SPEC.md section 2 ("Rasterizer"): numba cpu backend, 100k Gaussians at '
                "400 px, forward + backward"},
 }
-# The last GPU run of each stage's fit (benchmarks/README.md, "GPU runs"): whether a change to the training step shows
-# on the device. Compared as it/s; marked as not comparable when this run's GPU is another.
+# The last GPU run of each stage's fit (benchmarks/README.md, "GPU runs"): whether a change to the training
+# step shows on the device. Compared as it/s; marked as not comparable when this run's GPU is another.
 GPU_BEFORE = {
     "bonsai_fit": {"iterations": 2249, "seconds": 120, "gpu": "NVIDIA H100 80GB HBM3", "commit": "a77e52d",
-                   "source": "stage d at commit a77e52d: 18.74 it/s (stage 1 ~20, stage 2 ~19.5), 97,298 anchors"},
+                   "source": "stage d at commit a77e52d: 18.74 it/s (stage 1 ~20, stage 2 ~19.5), "
+                             "97,298 anchors"},
     "bonsai_3dgs": {"iterations": 7557, "seconds": 120, "gpu": "NVIDIA H100 80GB HBM3", "commit": "a77e52d",
                     "source": "stage g at commit a77e52d: 62.98 it/s, 299,862 Gaussians"},
     "bonsai_extent": {"iterations": 2769, "seconds": 120, "gpu": "NVIDIA H100 80GB HBM3", "commit": "a77e52d",
-                      "source": "stage x at commit a77e52d: 23.07 it/s (stage 1 ~27, stage 2 ~20), 23,647 anchors; "
-                                "14.88 it/s at 5f76b9c before the step's launches were cut"},
+                      "source": "stage x at commit a77e52d: 23.07 it/s (stage 1 ~27, stage 2 ~20), "
+                                "23,647 anchors; 14.88 it/s at 5f76b9c before the step's launches were cut"},
 }
 DONE = re.compile(r"done: (\d+) iterations in ([\d:]+)")
 PROG = re.compile(r"it\s+(\d+)/(\S+)\s+loss\s+([-\d.naif]+)\s+psnr\s+([-\d.naif]+).*?([\d:]+) elapsed")
@@ -339,15 +341,16 @@ def stage_b(R: Run, rec: dict) -> None:
 
 
 def keep(R: Run, rec: dict, *paths: Path) -> None:
-    """Copy ``paths`` into OUT/fits/, each in parts of at most 15 MiB (the device tool returns files of at most
-    16 MiB); their names and sizes into ``rec["kept"]``."""
+    """Copy ``paths`` into OUT/fits/, each in parts of at most 15 MiB (the device tool returns files of at
+    most 16 MiB); their names and sizes into ``rec["kept"]``."""
     part, dest = 15 * 2**20, R.out / "fits"
     dest.mkdir(exist_ok=True)
     for path in paths:
         data = path.read_bytes()
-        names = [path.name] if len(data) <= part else [f"{path.name}.part{i:02d}" for i in range(-(-len(data) // part))]
-        for i, name in enumerate(names):
-            (dest / name).write_bytes(data[i * part:(i + 1) * part])
+        chunks = [data[i:i + part] for i in range(0, len(data), part)] or [data]
+        names = [path.name] if len(chunks) == 1 else [f"{path.name}.part{i:02d}" for i in range(len(chunks))]
+        for name, chunk in zip(names, chunks):
+            (dest / name).write_bytes(chunk)
         rec.setdefault("kept", {})[path.name] = {"bytes": len(data), "files": names}
 
 
@@ -418,8 +421,8 @@ def stage_x(R: Run, rec: dict) -> None:
 
 
 def stage_n(R: Run, rec: dict) -> None:
-    """``encode`` of stage d's fit as fitted (its stage-2 predictor), on the device; the container's bytes against
-    stage g's SPZ (the acceptance: >= 10x smaller)."""
+    """``encode`` of stage d's fit as fitted (its stage-2 predictor), on the device; the container's bytes
+    against stage g's SPZ (the acceptance: >= 10x smaller)."""
     ply, pxc = R.work / "bonsai.ply", R.work / "bonsai.pxc"
     if not ply.exists():
         raise Skip("no bonsai fit (stage d)")
@@ -429,12 +432,14 @@ def stage_n(R: Run, rec: dict) -> None:
     check(r)
     j = json_out(r)
     rec["encode"] = dict(brief(r), bytes=j["file_bytes"], ratio=j["ratio"], encode_seconds=j["seconds"])
-    rec["key"] = f"encode as fitted **{r['seconds']:.0f} s**, {j['file_bytes']:,} B ({j['ratio']:.1f}x PLY + weights)"
+    rec["key"] = (f"encode as fitted **{r['seconds']:.0f} s**, {j['file_bytes']:,} B "
+                  f"({j['ratio']:.1f}x PLY + weights)")
     keep(R, rec, pxc)
     spz = R.res["stages"].get("g", {}).get("spz_bytes")
     if spz:
         rec["spz_over_container"] = round(spz / j["file_bytes"], 2)
-        rec["cpu"] = f"SPZ of stage g's 3DGS / container: **{rec['spz_over_container']}x** (acceptance: >= 10x)"
+        rec["cpu"] = (f"SPZ of stage g's 3DGS / container: **{rec['spz_over_container']}x** "
+                      "(acceptance: >= 10x)")
 
 
 def stage_c(R: Run, rec: dict) -> None:

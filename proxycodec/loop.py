@@ -198,9 +198,9 @@ class TrainingRun:
     """Where a run stands (``cfg.iters`` and/or ``cfg.time_budget`` against ``iteration`` and ``elapsed``) and the
     one step sequence of every trainer.
 
-    A subclass sets ``data``, ``cfg`` (with ``iters``, ``time_budget``, ``backend``), ``device``, ``rng``, ``opt`` (an
-    ``optim.Adam``) and ``images`` (targets), calls ``_start_run()``, and implements ``train_step`` with ``sample_view`` and
-    ``optimise``, plus the hooks ``observe`` and ``after_step``.
+    A subclass sets ``data``, ``cfg`` (with ``iters``, ``time_budget``, ``backend``), ``device``, ``rng``,
+    ``opt`` (an ``optim.Adam``) and ``images`` (targets), calls ``_start_run()``, and implements
+    ``train_step`` with ``sample_view`` and ``optimise``, plus the hooks ``observe`` and ``after_step``.
     """
 
     def _start_run(self) -> None:
