@@ -59,12 +59,12 @@ SCENES = {
     "lego": {"dataset": SHARED / "nerf_synthetic" / "lego", "max_width": 400, "views": 8, "budgets": [120, 400, 900],
              "test_every": 8},
     "bonsai": {"dataset": SHARED / "mipnerf360" / "bonsai", "max_width": 800, "views": 4, "budgets": [300, 600],
-               "test_every": 8, "voxel_rules": ["extent"]},
+               "test_every": 8, "voxel_rules": ["spacing", "extent"]},
 }
 QUICK = {"lego": {"max_width": 160, "views": 2, "budgets": [20, 60]}}
-# "voxel_rules": fit's other anchor densities at the main budget (a scene with SfM points only: without them the
-# rule is extent / 128 whatever is asked), each encoded with the defaults: the price of the default
-# ``--voxel-rule spacing`` in iterations per second against what its finer anchors give.
+# "voxel_rules": fit's fixed anchor densities at the main budget (a scene with SfM points only: without them the
+# rule is extent / 128 whatever is asked), each encoded with the defaults, beside the default ``--voxel-rule auto``
+# (which picks one of them by the pace of its probe steps): whether it picked the better one at this budget.
 # The rate term's weights of the RD sweep (fit --lambda-rate), around the main fit's default (1e-4).
 RATE_LAMBDAS = (0.0, 3e-5, 3e-4)
 QUICK_RATE_LAMBDAS = (0.0,)
@@ -115,7 +115,8 @@ PAPER_BASIS = {"lambda_recon fixed 0.1": _SCHEDULE, "lambda_recon fixed 0.01": _
 QUICK_ABLATIONS = ("coverage gate off (trained and rendered without)",
                    "coverage gate post hoc (trained without, rendered with)", "L_recon MSE",
                    "predictor Proxy&Leaf MLP")
-SCAFFOLD = {"proxies": False, "gate": False, "embedding": "none", "fixed_res": True}
+# Scaffold-GS's own voxel (the SfM points' spacing) whatever the budget: ``auto`` is ours
+SCAFFOLD = {"proxies": False, "gate": False, "embedding": "none", "fixed_res": True, "voxel_rule": "spacing"}
 
 
 def fit_config(budget: float, seed: int, iters: int | None = None, **overrides) -> dict:

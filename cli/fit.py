@@ -98,10 +98,12 @@ _no_undistort_option = click.option(
 @fit_option("--gate-eta", type=float, show_default=True,
             help="Coverage gate threshold eta in pixels^2 (training and rendering; stored with the decoder).")
 @fit_option("--voxel-size", type=float, show_default=True, help="Anchor voxel size; <= 0: chosen by --voxel-rule.")
-@fit_option("--voxel-rule", type=click.Choice(["extent", "spacing"]), show_default=True,
+@fit_option("--voxel-rule", type=click.Choice(["auto", "extent", "spacing"]), show_default=True,
             help="Automatic voxel: the SfM points' median nearest-neighbour spacing (Scaffold-GS's; about one "
-                 "anchor per point), or the scene's extent / 128 (fewer, larger anchors: better for a fit of "
-                 "minutes on a CPU, where they get more iterations). Without SfM points: extent.")
+                 "anchor per point), or the scene's extent / 128 (fewer, larger anchors: better for a short run, "
+                 "where they get more iterations). auto: spacing when the run reaches 1000 iterations at that "
+                 "density (--iters, or the pace of 10 probe steps under --time-budget), else extent. Without SfM "
+                 "points: extent.")
 @fit_option("--max-anchors", type=click.IntRange(min=1),
             help="Stop growing anchors at this many [default: no cap; the scene decides, as in Scaffold-GS].")
 @click.option("--init-points", type=int, default=None,

@@ -33,13 +33,13 @@ import numpy as np
 import torch
 
 from .decoder import DecoderConfig, GaussianDecoder
-from .devices import as_device, generator, upload
+from .devices import as_device, generator, synchronize, upload
 from .entropy_fit import RateModel
 from .errors import ProxycodecError
 from .formats.container import read_container
 from .loop import (
     ProgressFn, TargetImages, TrainingRun, check_run_length, check_xi_sampling, checkpoint_path_for, fmt_time,
-    has_sfm_points, initial_points, knn_scale, photometric_loss, run_checkpointed,
+    has_sfm_points, initial_points, knn_scale, photometric_loss, run_checkpointed, timed_step, warm_up_renderer,
 )
 from .model import SceneModel, render_scene, scene_visible, weights_path_for
 from .netconfig import PredictorConfig
@@ -71,7 +71,8 @@ FIT_KIND = "proxycodec.fit"
 
 
 # ================================================================================================ configuration
-VOXEL_RULES = ("extent", "spacing")
+VOXEL_RULES = ("auto", "extent", "spacing")
+DENSITY_PROBE_STEPS = 10  # "auto" under a time budget: steps at the spacing density that measure the pace
 
 
 @dataclass(frozen=True)
@@ -106,11 +107,15 @@ class FitConfig:
     proxies: bool = True  # stage 2 (proxy anchors + residual predictor); False: Scaffold-GS only
     # initialisation
     voxel_size: float = 0.0  # > 0: this size; <= 0: chosen by ``voxel_rule``
-    # [D] "spacing": Scaffold-GS's automatic voxel, the median distance between the distinct SfM points and their
+    # "spacing": Scaffold-GS's automatic voxel, the median distance between the distinct SfM points and their
     # nearest neighbour (about one anchor per point: the scene decides); without SfM points (Blender's random init)
-    # it falls back to "extent": the bounds' extent / voxel_divisions. Why spacing: SPEC.md section 5.
-    voxel_rule: str = "spacing"
+    # it falls back to "extent": the bounds' extent / voxel_divisions. [D] "auto": the density follows the run's
+    # length: spacing when the run is expected to reach ``density_iters`` iterations at that density, else extent
+    # (fewer, larger anchors, which a short run trains further). ``iters`` alone decides it; under a time budget
+    # ``fit`` measures the pace of DENSITY_PROBE_STEPS steps at the spacing density first. Why: SPEC.md section 5.
+    voxel_rule: str = "auto"
     voxel_divisions: int = 128
+    density_iters: int = 1000
     init_points: int = 5_000  # random points in the bounds when the dataset has no SfM points (Blender)
     # loss
     lambda_dssim: float = 0.2
@@ -226,6 +231,8 @@ class FitConfig:
             raise ProxycodecError(f"the anchor cap must be >= 1, got {self.max_anchors}")
         if self.voxel_rule not in VOXEL_RULES:
             raise ProxycodecError(f"voxel rule {self.voxel_rule!r}: must be one of {', '.join(VOXEL_RULES)}")
+        if self.density_iters < 1:
+            raise ProxycodecError(f"the density switch must be >= 1 iteration, got {self.density_iters}")
         if self.predictor_warmup < 0:
             raise ProxycodecError(f"predictor warm-up must be >= 0 iterations, got {self.predictor_warmup}")
         if self.recon_loss not in RECON_LOSSES:
@@ -330,11 +337,20 @@ def voxelise(points: np.ndarray, voxel: float) -> np.ndarray:
     return cells.astype(np.float64) * voxel
 
 
+def density_rule(cfg: FitConfig, expected_iters: float | None = None) -> str:
+    """The voxel rule ``cfg`` stands for: "auto" resolved by the run's expected length (``expected_iters``, else
+    ``cfg.iters``; neither known: spacing, which ``fit`` avoids by measuring the pace first)."""
+    if cfg.voxel_rule != "auto":
+        return cfg.voxel_rule
+    n = expected_iters if expected_iters is not None else cfg.iters
+    return "extent" if n is not None and n < cfg.density_iters else "spacing"
+
+
 def initial_voxel(pts: np.ndarray, extent: float, cfg: FitConfig, has_sfm: bool) -> float:
     """The anchor voxel: ``cfg.voxel_size`` if given, else by ``cfg.voxel_rule`` (see ``FitConfig``)."""
     if cfg.voxel_size > 0:
         return float(cfg.voxel_size)
-    if cfg.voxel_rule == "spacing" and has_sfm and (spacing := point_spacing(pts)) > 0:
+    if density_rule(cfg) == "spacing" and has_sfm and (spacing := point_spacing(pts)) > 0:
         return spacing
     return extent / cfg.voxel_divisions
 
@@ -415,6 +431,7 @@ class Trainer(TrainingRun):
         self.leaf_offset_target: torch.Tensor | None = None  # [L, K, 3] their stage-1 offsets (predict_offsets)
         self.leaves: torch.Tensor | None = None  # [L] long
         self.rate: RateModel | None = None  # stage 2 with lambda_rate > 0
+        self.density: dict | None = None  # how "auto" chose the voxel rule (``fit``), recorded with the result
         self.opt = self._optimiser()
         self.strategy = ScaffoldStrategy(config, self.anchors.num_anchors, self.anchors.n_offsets, self.log, dev)
         self._start_run()
@@ -665,7 +682,7 @@ class Trainer(TrainingRun):
             "kind": FIT_KIND, "config": self.cfg.to_json(), "dataset": str(self.dataset_root),
             "iterations": self.iteration, "seconds": round(self.elapsed, 3),
             "camera_split": {"test": list(range(nt)), "train": list(range(nt, len(cams)))},
-            "stage": self.stage,
+            "stage": self.stage, **({} if self.density is None else {"density": self.density}),
         }
         arrays: dict[str, np.ndarray] = {}
         if self.stage >= 2 and self.predictor is not None:
@@ -706,6 +723,7 @@ class Trainer(TrainingRun):
             "dataset": str(self.dataset_root), "stage": self.stage, "last_adjust": self.strategy.last_adjust,
             "voxel_size": a.voxel_size, "decoder": self.decoder.config.to_json(),
             "adam_steps": dict(self.opt.step_count), **run_meta,
+            **({} if self.density is None else {"density": self.density}),
         }
         return meta, arrays
 
@@ -716,13 +734,18 @@ class Trainer(TrainingRun):
             raise ProxycodecError("not a fit checkpoint of this version", path)
         try:
             saved = FitConfig.from_json(m["config"])
+            cfg = self.cfg
+            if cfg.voxel_rule == "auto":  # the rule "auto" chose when the run started
+                cfg = replace(cfg, voxel_rule=saved.voxel_rule)
             # Run length may change on resume; everything else must match.
             ignore = {"iters", "time_budget", "checkpoint_every", "log_every", "backend", "max_anchors"}
             diff = [f.name for f in fields(FitConfig) if f.name not in ignore
-                    and getattr(saved, f.name) != getattr(self.cfg, f.name)]
+                    and getattr(saved, f.name) != getattr(cfg, f.name)]
             if diff:
                 raise ProxycodecError(f"checkpoint was made with different settings ({', '.join(diff[:5])}); "
                                       "resume with the same options or start afresh", path)
+            self.cfg = cfg
+            self.density = m.get("density")
             arr = ck.arrays
             self.anchors = TrainableAnchors(*(torch.from_numpy(np.array(arr[f"anchors/{k}"])).to(self.device)
                                               for k in ("positions", "features", "offsets", "scalings")),
@@ -791,12 +814,54 @@ def fit(data, out_ply: str | os.PathLike, config: FitConfig = FitConfig(), *, da
     log = log or (lambda s: print(s, file=sys.stderr, flush=True))
     ckpt = checkpoint_path_for(out_ply)
     t_setup = time.perf_counter()
-    tr = Trainer(data, config, dataset_root, log, start=start, device=device)
+
+    def detail(st: dict) -> str:
+        return (f"xi {st['xi']:.2f}  gauss {st['gaussians']:7d}  anchors {tr.anchors.num_anchors:6d}  "
+                f"stage {tr.stage}")
+
+    def hist_extra() -> dict:
+        return {"anchors": tr.anchors.num_anchors}
+
+    def make(cfg: FitConfig) -> Trainer:
+        return Trainer(data, cfg, dataset_root, log, start=start, device=device)
+
     if resume:
+        tr = make(config)
         if not ckpt.exists():
             raise ProxycodecError("no checkpoint to resume from", ckpt)
         tr.load_checkpoint(ckpt)
         log(f"resumed from {ckpt} at iteration {tr.iteration} ({fmt_time(tr.elapsed)} trained)")
+    elif config.voxel_rule != "auto" or start is not None or config.voxel_size > 0:
+        tr = make(config)
+    elif not has_sfm_points(data) or config.time_budget is None or (
+            config.iters is not None and config.iters < config.density_iters):
+        # no SfM points: extent either way; a length in iterations decides by itself
+        rule = density_rule(config) if has_sfm_points(data) else "extent"
+        tr = make(replace(config, voxel_rule=rule))
+        tr.density = {"rule": "auto", "chose": rule, "switch": config.density_iters}
+        log(f"density auto: {rule} ({config.iters} iterations, switch at {config.density_iters})"
+            if has_sfm_points(data) else "density auto: extent (no SfM points)")
+    else:  # under a time budget: the pace at the spacing density decides
+        tr = make(replace(config, voxel_rule="spacing"))
+        warm_up_renderer(tr, log)
+        t0 = time.perf_counter()
+        for _ in range(DENSITY_PROBE_STEPS):
+            timed_step(tr, math.inf, t0, log, detail, hist_extra)
+        synchronize(tr.device)
+        pace = (time.perf_counter() - t0) / DENSITY_PROBE_STEPS
+        expected = config.time_budget / pace if config.iters is None else min(config.time_budget / pace,
+                                                                              config.iters)
+        rule = density_rule(config, expected)
+        info = {"rule": "auto", "chose": rule, "switch": config.density_iters, "expected_iterations":
+                round(expected), "probe_steps": DENSITY_PROBE_STEPS, "probe_seconds": round(tr.elapsed, 3)}
+        log(f"density auto: {DENSITY_PROBE_STEPS} steps at the spacing density ({tr.anchors.num_anchors} anchors) "
+            f"took {pace:.3g} s each; the budget buys ~{expected:.0f} iterations, "
+            f"{'>=' if rule == 'spacing' else '<'} {config.density_iters}: {rule}")
+        if rule != "spacing":  # start afresh at the extent density; the probe's seconds stay spent
+            spent = tr.elapsed
+            tr = make(replace(config, voxel_rule=rule))
+            tr.elapsed = spent
+        tr.density = info
     log(f"fit: {len(data.train_indices)} training views, {tr.anchors.num_anchors} anchors "
         f"(voxel {tr.anchors.voxel_size:.4g}), setup {time.perf_counter() - t_setup:.1f} s; "
         f"iters {config.iters}, time budget {config.time_budget}")
@@ -806,10 +871,8 @@ def fit(data, out_ply: str | os.PathLike, config: FitConfig = FitConfig(), *, da
         save_fitted(to_save(res) if to_save else res, out_ply)
         return res
 
-    res = run_checkpointed(tr, ckpt, config.checkpoint_every, log, lambda st: (
-        f"xi {st['xi']:.2f}  gauss {st['gaussians']:7d}  anchors {tr.anchors.num_anchors:6d}  "
-        f"stage {tr.stage}"), lambda: {"anchors": tr.anchors.num_anchors}, finish, keep_checkpoint=keep_checkpoint,
-        stop_after=stop_after)
+    res = run_checkpointed(tr, ckpt, config.checkpoint_every, log, detail, hist_extra, finish,
+                           keep_checkpoint=keep_checkpoint, stop_after=stop_after)
     log(f"done: {tr.iteration} iterations in {fmt_time(tr.elapsed)}, {tr.anchors.num_anchors} anchors -> "
         f"{out_ply}")
     return res

@@ -533,7 +533,16 @@ class TestFit:
         pts = np.concatenate([g, g + rng.uniform(-0.002, 0.002, g.shape), [[2.0, 2.0, 2.0]]])
         bounds = np.array([[0.0, 0.0, 0.0], [2.0, 2.0, 2.0]])
         sfm = SimpleNamespace(points=pts, point_colors=None, bounds=bounds)
-        assert FitConfig().voxel_rule == "spacing"  # the scene decides (SPEC.md section 5)
+        assert FitConfig().voxel_rule == "auto"  # the scene and the run's length decide (SPEC.md section 5)
+        # auto by the run's length in iterations: spacing from density_iters on, extent below
+        _, voxel, _, _ = initial_anchors(sfm, FitConfig(iters=1000), np.random.default_rng(0))
+        assert 0 < voxel < 0.0035 * 2
+        _, voxel, _, _ = initial_anchors(sfm, FitConfig(iters=999), np.random.default_rng(0))
+        assert voxel == pytest.approx(2.0 / 128)
+        _, voxel, _, _ = initial_anchors(sfm, FitConfig(iters=999, density_iters=999), np.random.default_rng(0))
+        assert 0 < voxel < 0.0035 * 2
+        with pytest.raises(ProxycodecError, match="density switch"):
+            FitConfig(density_iters=0)
         a, voxel, _, _ = initial_anchors(sfm, FitConfig(voxel_rule="extent"), np.random.default_rng(0))
         assert voxel == pytest.approx(2.0 / 128) and len(a) == len(np.unique(np.round(pts / voxel), axis=0))
         a, voxel, _, _ = initial_anchors(sfm, FitConfig(voxel_rule="spacing"), np.random.default_rng(0))
@@ -559,6 +568,53 @@ class TestFit:
 
 
 # ------------------------------------------------------------------------------------------------ CLI
+def test_auto_density_follows_the_run_length(data, tmp_path):
+    """``voxel_rule="auto"`` on a dataset with SfM points: a length in iterations decides by itself; under a time
+    budget the pace of the probe steps at the spacing density decides, a switch to extent keeps the probe's seconds
+    spent, the choice is recorded, and a run resumed with "auto" continues at the density it chose."""
+    from dataclasses import replace
+
+    from proxycodec.model import SceneModel
+    from proxycodec.train import DENSITY_PROBE_STEPS, fit
+
+    lo, hi = data.bounds
+    extent = float(np.max(hi - lo))
+    step = extent / 16  # the SfM points' spacing: the spacing voxel, 8x the extent / 128 one
+    grid = np.stack(np.meshgrid(*[np.arange(4)] * 3, indexing="ij"), -1).reshape(-1, 3) * step
+    sfm = replace(data, points=((lo + hi) / 2 + grid - 1.5 * step).astype(np.float32))
+    spacing, coarse = pytest.approx(step, rel=1e-5), pytest.approx(extent / 128, rel=1e-5)
+
+    def run(name, **kw):
+        logs = []
+        res = fit(sfm, tmp_path / name, small_config(**kw), dataset_root="tiny", log=logs.append)
+        return res, res.extra_meta["fit"]["density"], logs
+
+    res, dens, logs = run("a.ply", iters=12)  # 12 < 1000 iterations: extent, no probe
+    assert res.model.scene.voxel_size == coarse and dens["chose"] == "extent" and "probe_steps" not in dens
+    assert any("density auto: extent" in s for s in logs)
+    res, dens, _ = run("b.ply", iters=12, density_iters=12)
+    assert res.model.scene.voxel_size == spacing and dens["chose"] == "spacing"
+    # under a time budget: probe steps at the spacing density, then the rule; every pace is below 10^9 iterations
+    res, dens, logs = run("c.ply", iters=None, time_budget=1.5, density_iters=10 ** 9)
+    assert res.model.scene.voxel_size == coarse and dens["chose"] == "extent"
+    assert dens["probe_steps"] == DENSITY_PROBE_STEPS and 0 < dens["probe_seconds"] <= res.seconds
+    assert res.history[0]["seconds"] >= dens["probe_seconds"]  # the extent run's clock starts where the probe's ends
+    assert any("steps at the spacing density" in s and s.endswith(": extent") for s in logs)
+    res, dens, _ = run("d.ply", iters=None, time_budget=1.5, density_iters=1)  # the probe's run goes on
+    assert res.model.scene.voxel_size == spacing and dens["chose"] == "spacing"
+    assert res.history[0]["it"] == 1 and res.iterations > DENSITY_PROBE_STEPS
+    assert SceneModel.load(tmp_path / "d.ply").scene.voxel_size == spacing
+    # resumed with "auto": the checkpoint's choice stands, and the run ends where an uninterrupted one does
+    cfg = small_config(iters=24)
+    with pytest.raises(KeyboardInterrupt):
+        fit(sfm, tmp_path / "r.ply", cfg, dataset_root="tiny", log=lambda s: None, stop_after=14)
+    r = fit(sfm, tmp_path / "r.ply", cfg, dataset_root="tiny", log=lambda s: None, resume=True)
+    u = fit(sfm, tmp_path / "u.ply", cfg, dataset_root="tiny", log=lambda s: None)
+    assert r.extra_meta["fit"]["density"]["chose"] == "extent" and r.extra_meta["fit"]["config"]["voxel_rule"] == \
+        "extent"
+    assert (tmp_path / "r.ply").read_bytes() == (tmp_path / "u.ply").read_bytes()
+
+
 def test_cli_fit_and_eval(tiny_dataset, tmp_path):
     from click.testing import CliRunner
     from proxycodec.cli.main import cli
