@@ -857,8 +857,8 @@ def fit(data, out_ply: str | os.PathLike, config: FitConfig = FitConfig(), *, da
         rule = density_rule(config, expected)
         info = {"rule": "auto", "chose": rule, "switch": config.density_iters, "expected_iterations":
                 round(expected), "probe_steps": DENSITY_PROBE_STEPS, "probe_seconds": round(tr.elapsed, 3)}
-        log(f"density auto: {DENSITY_PROBE_STEPS} steps at the spacing density ({tr.anchors.num_anchors} anchors) "
-            f"took {pace:.3g} s each; the budget buys ~{expected:.0f} iterations, "
+        log(f"density auto: {DENSITY_PROBE_STEPS} steps at the spacing density ({tr.anchors.num_anchors} anchors), "
+            f"{pace:.3g} s each after the first; the budget buys ~{expected:.0f} iterations, "
             f"{'>=' if rule == 'spacing' else '<'} {config.density_iters}: {rule}")
         if rule != "spacing":  # start afresh at the extent density; the probe's seconds stay spent
             spent = tr.elapsed
