@@ -22,8 +22,9 @@ each step finishes, a re-run resumes):
 4b. the rate-distortion sweep: fits at the main budget with the rate term (``fit --lambda-rate``, ``RATE_LAMBDAS``),
    each encoded with the defaults (entropy model, learned grids) and evaluated: with the main fit (the default
    1e-4) they are the RD curve of the entropy model (issue #17);
-4c. the anchor density (bonsai: a scene with SfM points): ``fit --voxel-rule extent`` at the main budget, encoded with
-   the defaults, beside the default ``spacing`` (the main fit): what the finer anchors cost in iterations and bytes;
+4c. the anchor density (bonsai: a scene with SfM points): ``fit --voxel-rule spacing`` and ``extent`` at the main
+   budget, each encoded with the defaults, beside the default ``auto`` (the main fit, which picks one of the two by
+   its probe's pace): what the finer anchors cost in iterations and bytes, and whether ``auto`` picked the better;
 5. the paper's ablations (lego) at a smaller reference width and a fixed number of iterations (``ABLATION``: 200 px,
    3000 iterations; iteration budgets give every fit the same length whatever the machine's load, which a 2-minute
    wall-time budget did not: two seeds of the default differed by 2.2 dB), each evaluated uncompressed (the
@@ -281,13 +282,8 @@ def map_pass(runner, args, specs, ablations, ab_scenes, noise_seeds, ab_spec, ab
         e = eval_step(runner, f"eval:{n}/3dgs spz", back, ev) if conv.get("status") == "ok" else None
         points.append(make_point(n, f"3DGS -> SPZ (splat-transform), fit {main_b:g} s", "spz", fit=gs_fit,
                                  enc=conv, ev=e, group="baseline"))
-        # 4. encode sweeps on the main fit (its as-fitted default encode is the scene's default point)
-        sw = run_encode_sweeps(runner, n, main_ply, ev, quick=args.quick, fit=main_fit, evaluated=evaluated)
-        for p in sw:
-            if p["id"] == "encode default":
-                p["id"] = f"ours, fit {main_b:g} s, default encode"
-                p["sweeps"]["fit_budget"] = f"{main_b:g} s"
-        points += sw
+        # The fits of 4b and 4c run before the encode sweeps (4): wall-time fits need the machine alone, and a map
+        # paused within the sweeps' hours resumes with encodes only (bonsai: ~300 s each, ~20 of them)
         # 4b. the RD sweep: the rate term at the main budget, each fit encoded with the defaults
         for lam in (QUICK_RATE_LAMBDAS if args.quick else RATE_LAMBDAS):
             ply, rec = fit(f"rate={lam:g} budget={main_b:g}", main_b, lambda_rate=lam)
@@ -300,6 +296,13 @@ def map_pass(runner, args, specs, ablations, ab_scenes, noise_seeds, ab_spec, ab
             points.append(encode_point(runner, n, f"ours, fit {main_b:g} s, --voxel-rule {rule}, default encode",
                                        ply, {}, ev, fit=rec, evaluated=evaluated, group="anchor density",
                                        default=False, sweeps={"voxel_rule": rule}))
+        # 4. encode sweeps on the main fit (its as-fitted default encode is the scene's default point)
+        sw = run_encode_sweeps(runner, n, main_ply, ev, quick=args.quick, fit=main_fit, evaluated=evaluated)
+        for p in sw:
+            if p["id"] == "encode default":
+                p["id"] = f"ours, fit {main_b:g} s, default encode"
+                p["sweeps"]["fit_budget"] = f"{main_b:g} s"
+        points += sw
         # 5. ablations: fixed iterations at the ablation width, each against the default fit of the same settings
         if n in ab_scenes and ablations:
             ab_w, ab_it = ab_spec["max_width"], ab_spec["iters"]
