@@ -403,6 +403,34 @@ def test_the_benchmark_converts_with_conversion_s_own_fit_settings_like_the_cli(
                                                                                                       4000)
 
 
+@pytest.mark.parametrize("given, expected", [([], ConvertConfig().fit.lambda_rate), (["--lambda-rate", "0"], 0.0),
+                                             (["--lambda-rate", "3e-4"], 3e-4)])
+def test_convert_s_lambda_rate_reaches_the_conversion_s_fit(tmp_path, monkeypatch, given, expected):
+    """`convert --lambda-rate` sets the rate term of conversion's own fit; left out, conversion's default stays; the
+    other fields of conversion's fit stay either way."""
+    import proxycodec.convert as convert_module
+
+    seen = []
+
+    def spy(ply, out, cfg, **kw):
+        seen.append(cfg.fit)
+        raise ProxycodecError("stop here")
+
+    monkeypatch.setattr(convert_module, "convert", spy)
+    write_inria_ply(tmp_path / "g.ply", _ball(20))
+    res = CliRunner().invoke(cli, ["convert", str(tmp_path / "g.ply"), "-o", str(tmp_path / "a.ply"), *given])
+    assert res.exit_code == 2 and "stop here" in res.output
+    assert seen[0].lambda_rate == expected and seen[0].iters == ConvertConfig().fit.iters
+
+
+def test_convert_s_lambda_rate_refuses_a_negative_weight(tmp_path):
+    write_inria_ply(tmp_path / "g.ply", _ball(20))
+    res = CliRunner().invoke(cli, ["convert", str(tmp_path / "g.ply"), "-o", str(tmp_path / "a.ply"),
+                                   "--lambda-rate", "-1"])
+    assert res.exit_code == 2 and "--lambda-rate" in res.output
+    assert not (tmp_path / "a.ply").exists()
+
+
 # ---------------------------------------------------------------------------------------------- background
 def _trainer_output(tmp_path, white: bool | None):
     """A 3DGS trainer's output folder: OUT/cameras.json, OUT/cfg_args (``white`` None: none) and the PLY in
