@@ -1,6 +1,6 @@
 """What accuracy costs in time and bytes: one command for every table and plot.
 
-    python benchmarks/tradeoff.py                       # full: lego (400 px) + bonsai (800 px), ~4.5 h on 2 cores
+    python benchmarks/tradeoff.py                       # full: lego (400 px) + bonsai (800 px), ~7 h on 2 cores
     python benchmarks/tradeoff.py --quick               # CI smoke: lego at 160 px, tiny budgets, <= 20 min
     python benchmarks/tradeoff.py --scenes lego --out benchmarks/results/tradeoff --budget-scale 0.5
     python benchmarks/tradeoff.py --ray [ADDRESS]       # the independent steps as Ray tasks (a cluster's width)
@@ -31,8 +31,9 @@ each step finishes, a re-run resumes):
    PLY holds the leaves' predicted features) against the default fit of the same settings, next to the paper's
    figure; a second seed of the default measures the run-to-run noise.
 
-Wall time on the 2-core machine: the steps of the last full run took 11,024 s (fits 9,896 s; the ablations, fits and evaluations, 4,726 s of
-them), before the RD sweep added 4,500 s of fits: ~4.5 h from scratch, more than a 3-hour run can hold.
+Step time on the 2-core machine (benchmarks/README.md, "Trade-off map"): lego 8,779 s without the ablations and the
+ablations 4,726 s (maps at 55ded46 and 5675cfe); bonsai at the defaults of 83d5913 7,273 s for its fits, baselines and
+first encode points, ~1.3 h more for the rest of its encode sweeps: ~7 h from scratch, more than a 3-hour run holds.
 ``--no-ablations`` or ``--scenes lego`` shorten it; a re-run without ``--fresh`` resumes from the finished steps.
 Steps are cached by code and configuration: a step is reused when the same package sources (``runner.code_key``) ran
 it with the same arguments, so a map resumed after the code changed re-runs what the change may affect (all of it);
