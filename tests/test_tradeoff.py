@@ -269,6 +269,21 @@ def test_pareto_front_on_a_hand_made_set():
     assert pareto_front([{"t": 3.0, "psnr_avg": 1.0}, {"t": 1.0, "psnr_avg": 2.0}], x="t") == [1]
 
 
+def test_the_report_states_step_time_and_the_wall_time_only_of_runs_that_ended():
+    """A map paused across sessions: a run killed at a pause records no wall time, so the report sums the steps'
+    own times (each step once) and says how many runs its wall time leaves out."""
+    from proxycodec.bench import markdown_report
+    from proxycodec.bench.report import time_summary
+
+    meta = {"runs": [{"wall_seconds": 100.0}, {}, {"wall_seconds": 2500.4}],
+            "steps": {"fit:a": {"seconds": 1500.0}, "encode:a": {"seconds": 600.25}, "eval:a": {"seconds": None}}}
+    line = time_summary(meta)
+    assert line.startswith("step time 2,100 s in 3 step(s); wall time 2,600 s over the 2 of 3 run(s)")
+    assert line.endswith("(1 stopped early: no wall time recorded)")
+    assert "stopped" not in time_summary({"runs": [{"wall_seconds": 5.0}], "steps": {}})
+    assert line in markdown_report("t", meta, [])
+
+
 def test_ablations_compare_with_the_row_the_paper_compares_with():
     """The paper's lambda_recon deltas are against its schedule, not against our default (lambda_recon = 0): those
     rows take their delta, sign and noise verdict from the schedule row; the others from our reference."""

@@ -65,6 +65,18 @@ def point_row(p: dict, label: str | None = None) -> str:
             f"{'yes' if p.get('pareto') else ''} | {_rss(p)} |")
 
 
+def time_summary(meta: dict) -> str:
+    """What the folder's map cost: the recorded steps' own wall times summed (what the map costs from scratch,
+    whatever its pauses; a step killed at a pause and run again counts once), and the runs' wall time, of the runs
+    that ran to their end (one killed at a pause records none)."""
+    runs, steps = meta.get("runs") or [], (meta.get("steps") or {}).values()
+    ended = [r["wall_seconds"] for r in runs if r.get("wall_seconds") is not None]
+    out = (f"step time {_f(sum(s.get('seconds') or 0.0 for s in steps), ',.0f')} s in {len(steps)} step(s); "
+           f"wall time {_f(sum(ended), ',.0f')} s over the {len(ended)} of {len(runs)} run(s) of this folder that "
+           "ran to their end")
+    return out if len(ended) == len(runs) else out + f" ({len(runs) - len(ended)} stopped early: no wall time recorded)"
+
+
 def markdown_report(title: str, meta: dict, points: list[dict], extra_sections: Sequence[str] = ()) -> str:
     runs = meta.get("runs") or [{}]
     lines = [f"# {title}", ""]
@@ -75,9 +87,8 @@ def markdown_report(title: str, meta: dict, points: list[dict], extra_sections: 
         f"{mach.get('memory_gb', '?')} GB; {mach.get('platform', '')}. Versions: "
         + ", ".join(f"{k} {v}" for k, v in ver.items()) + ".",
         f"Seed {m.get('seed')}; load average (1, 5, 15 min) at the start {runs[0].get('loadavg_start')} and at "
-        f"the end {runs[-1].get('loadavg_end')}; wall time "
-        f"{_f(sum(r.get('wall_seconds') or 0.0 for r in runs), '.0f')} s over {len(runs)} run(s) of this folder "
-        "(a re-run reuses the steps already done; every step's own load averages are in the JSON).",
+        f"the end {runs[-1].get('loadavg_end')}; {time_summary(meta)} (a re-run reuses the steps already done; "
+        "every step's own load averages are in the JSON).",
         "",
         "Quality: PSNR / SSIM averaged over the ten resolutions 10%..100% of the 100% reference on the first test "
         "views (count per scene below); render time = mean per view, after one warm-up render. Fit seconds are "
