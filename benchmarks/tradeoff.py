@@ -32,8 +32,8 @@ each step finishes, a re-run resumes):
    figure; a second seed of the default measures the run-to-run noise.
 
 Step time on the 2-core machine (benchmarks/README.md, "Trade-off map"): lego 8,779 s without the ablations and the
-ablations 4,726 s (maps at 55ded46 and 5675cfe); bonsai at the defaults of 83d5913 7,273 s for its fits, baselines and
-first encode points, ~1.3 h more for the rest of its encode sweeps: ~7 h from scratch, more than a 3-hour run holds.
+ablations 4,726 s (maps at 55ded46 and 5675cfe); bonsai at the defaults of 83d5913 11,705 s: ~7 h from scratch, more
+than a 3-hour run holds.
 ``--no-ablations`` or ``--scenes lego`` shorten it; a re-run without ``--fresh`` resumes from the finished steps.
 Steps are cached by code and configuration: a step is reused when the same package sources (``runner.code_key``) ran
 it with the same arguments, so a map resumed after the code changed re-runs what the change may affect (all of it);

@@ -270,7 +270,7 @@ def test_pareto_front_on_a_hand_made_set():
 
 
 def test_the_report_states_step_time_and_the_wall_time_only_of_runs_that_ended():
-    """A map paused across sessions: a run killed at a pause records no wall time, so the report sums the steps'
+    """A map paused and resumed: a run killed at a pause records no wall time, so the report sums the steps'
     own times (each step once) and says how many runs its wall time leaves out."""
     from proxycodec.bench import markdown_report
     from proxycodec.bench.report import time_summary

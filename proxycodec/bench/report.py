@@ -74,7 +74,8 @@ def time_summary(meta: dict) -> str:
     out = (f"step time {_f(sum(s.get('seconds') or 0.0 for s in steps), ',.0f')} s in {len(steps)} step(s); "
            f"wall time {_f(sum(ended), ',.0f')} s over the {len(ended)} of {len(runs)} run(s) of this folder that "
            "ran to their end")
-    return out if len(ended) == len(runs) else out + f" ({len(runs) - len(ended)} stopped early: no wall time recorded)"
+    stopped = len(runs) - len(ended)
+    return out + f" ({stopped} stopped early: no wall time recorded)" if stopped else out
 
 
 def markdown_report(title: str, meta: dict, points: list[dict], extra_sections: Sequence[str] = ()) -> str:
