@@ -271,14 +271,18 @@ def test_pareto_front_on_a_hand_made_set():
 
 def test_the_report_states_step_time_and_the_wall_time_only_of_runs_that_ended():
     """A map paused and resumed: a run killed at a pause records no wall time, so the report sums the steps'
-    own times (each step once) and says how many runs its wall time leaves out."""
+    own times (each step once; a fit resumed from its checkpoint with its whole training) and says how many runs its
+    wall time leaves out."""
     from proxycodec.bench import markdown_report
     from proxycodec.bench.report import time_summary
 
     meta = {"runs": [{"wall_seconds": 100.0}, {}, {"wall_seconds": 2500.4}],
-            "steps": {"fit:a": {"seconds": 1500.0}, "encode:a": {"seconds": 600.25}, "eval:a": {"seconds": None}}}
+            "steps": {"fit:a": {"seconds": 1500.0}, "encode:a": {"seconds": 600.25}, "eval:a": {"seconds": None},
+                      # resumed from its checkpoint: this run's 300 s of wall time, 900 s of training in all
+                      "fit:b": {"seconds": 300.0, "result": {"resumed": True, "seconds": 900.0}},
+                      "fit:c": {"seconds": 300.0, "result": {"seconds": 900.0}}}}
     line = time_summary(meta)
-    assert line.startswith("step time 2,100 s in 3 step(s); wall time 2,600 s over the 2 of 3 run(s)")
+    assert line.startswith("step time 3,300 s in 5 step(s); wall time 2,600 s over the 2 of 3 run(s)")
     assert line.endswith("(1 stopped early: no wall time recorded)")
     assert "stopped" not in time_summary({"runs": [{"wall_seconds": 5.0}], "steps": {}})
     assert line in markdown_report("t", meta, [])

@@ -65,13 +65,24 @@ def point_row(p: dict, label: str | None = None) -> str:
             f"{'yes' if p.get('pareto') else ''} | {_rss(p)} |")
 
 
+def step_seconds(step: dict) -> float:
+    """A step's own time: its wall seconds, or, for a fit resumed from a checkpoint (whose recorded wall time is the
+    resumed part only), at least its whole training time (``result["seconds"]``)."""
+    own = step.get("seconds") or 0.0
+    res = step.get("result")
+    if isinstance(res, dict) and res.get("resumed") and isinstance(res.get("seconds"), (int, float)):
+        return max(own, float(res["seconds"]))
+    return own
+
+
 def time_summary(meta: dict) -> str:
-    """What the folder's map cost: the recorded steps' own wall times summed (what the map costs from scratch,
-    whatever its pauses; a step killed at a pause and run again counts once), and the runs' wall time, of the runs
-    that ran to their end (one killed at a pause records none)."""
+    """What the folder's map cost: the recorded steps' own times summed (``step_seconds``: what the map costs from
+    scratch, whatever its pauses; a step killed at a pause and run again counts once, a fit resumed from its
+    checkpoint its whole training), and the runs' wall time, of the runs that ran to their end (one killed at a
+    pause records none)."""
     runs, steps = meta.get("runs") or [], (meta.get("steps") or {}).values()
     ended = [r["wall_seconds"] for r in runs if r.get("wall_seconds") is not None]
-    out = (f"step time {_f(sum(s.get('seconds') or 0.0 for s in steps), ',.0f')} s in {len(steps)} step(s); "
+    out = (f"step time {_f(sum(step_seconds(s) for s in steps), ',.0f')} s in {len(steps)} step(s); "
            f"wall time {_f(sum(ended), ',.0f')} s over the {len(ended)} of {len(runs)} run(s) of this folder that "
            "ran to their end")
     stopped = len(runs) - len(ended)
