@@ -32,7 +32,7 @@ each step finishes, a re-run resumes):
    figure; a second seed of the default measures the run-to-run noise.
 
 Step time on the 2-core machine (benchmarks/README.md, "The map at commit 83d5913"): bonsai 11,705 s, lego
-8,837 s without the ablations, the ablations ~8,500 s (11 of their 17 fits: 5,466 s; the default fit trains with
+8,837 s without the ablations, the ablations ~8,500 s (12 of their 17 fits: 6,062 s; the default fit trains with
 the rate term, which makes a 200-px fit ~480 s): ~8 h from scratch, more than a 3-hour run holds.
 ``--no-ablations`` or ``--scenes lego`` shorten it; a re-run without ``--fresh`` resumes from the finished steps.
 Steps are cached by code and configuration: a step is reused when the same package sources (``runner.code_key``) ran
