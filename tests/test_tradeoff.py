@@ -315,6 +315,26 @@ def test_ablations_compare_with_the_row_the_paper_compares_with():
     assert "| -0.250 |" in md and "| +0.050 | yes (within noise) |" in md
 
 
+def test_every_ablation_changes_something_from_the_reference():
+    """An ablation row whose overrides are the defaults is the reference fit again (two rows of the map at 83d5913
+    measured nothing, +0.000 dB, after the defaults moved to spread proxies and context 4): each row changes a fit
+    setting from FitConfig's default, or renders with another gate mode."""
+    import dataclasses
+    import importlib.util
+
+    from proxycodec.train import FitConfig
+
+    spec = importlib.util.spec_from_file_location("tradeoff", Path(__file__).parents[1] / "benchmarks" / "tradeoff.py")
+    tradeoff = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(tradeoff)
+    defaults = {f.name: f.default for f in dataclasses.fields(FitConfig)}
+    for name, overrides, gate_mode, _, _ in tradeoff.ABLATIONS:
+        assert set(overrides) <= set(defaults), name
+        FitConfig(**overrides)  # a valid configuration
+        changed = {k for k, v in overrides.items() if v != defaults[k]}
+        assert changed or gate_mode != "model", f"{name}: {overrides} are the defaults"
+
+
 def test_encode_sweep_plan_centres_on_the_defaults():
     from proxycodec.bench import encode_sweep_plan, knob_id
     from proxycodec.codec import EncodeConfig
