@@ -1,6 +1,6 @@
 """What accuracy costs in time and bytes: one command for every table and plot.
 
-    python benchmarks/tradeoff.py                       # full: lego (400 px) + bonsai (800 px), ~7 h on 2 cores
+    python benchmarks/tradeoff.py                       # full: lego (400 px) + bonsai (800 px), ~8 h on 2 cores
     python benchmarks/tradeoff.py --quick               # CI smoke: lego at 160 px, tiny budgets, <= 20 min
     python benchmarks/tradeoff.py --scenes lego --out benchmarks/results/tradeoff --budget-scale 0.5
     python benchmarks/tradeoff.py --ray [ADDRESS]       # the independent steps as Ray tasks (a cluster's width)
@@ -32,8 +32,8 @@ each step finishes, a re-run resumes):
    figure; a second seed of the default measures the run-to-run noise.
 
 Step time on the 2-core machine (benchmarks/README.md, "The map at commit 83d5913"): bonsai 11,705 s, lego
-8,837 s without the ablations, the ablations ~8,500 s (12 of their 17 fits: 6,062 s; the default fit trains with
-the rate term, which makes a 200-px fit ~480 s): ~8 h from scratch, more than a 3-hour run holds.
+8,837 s without the ablations, the ablations ~8,500 s (17 fits of ~490 s: the default fit trains with the rate
+term, ~0.1 s per stage-2 step) and their evaluations: ~8 h from scratch, more than a 3-hour run holds.
 ``--no-ablations`` or ``--scenes lego`` shorten it; a re-run without ``--fresh`` resumes from the finished steps.
 Steps are cached by code and configuration: a step is reused when the same package sources (``runner.code_key``) ran
 it with the same arguments, so a map resumed after the code changed re-runs what the change may affect (all of it);
