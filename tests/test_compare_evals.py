@@ -2,22 +2,18 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 
 import pytest
+from conftest import load_benchmark
 
 XI = [0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0]
 
 
 @pytest.fixture(scope="module")
 def ce():
-    spec = importlib.util.spec_from_file_location("compare_evals",
-                                                  Path(__file__).parents[1] / "benchmarks" / "compare_evals.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_benchmark("compare_evals")
 
 
 def _report(path: Path, psnr: list[float], xi=XI, views=(0, 8)) -> Path:

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import torch
 from click.testing import CliRunner
-from conftest import write_blender
+from conftest import load_benchmark, write_blender
 
 from proxycodec.camera import orbit_cameras
 from proxycodec.errors import ProxycodecError
@@ -291,11 +291,7 @@ def test_the_report_states_step_time_and_the_wall_time_only_of_runs_that_ended()
 def test_ablations_compare_with_the_row_the_paper_compares_with():
     """The paper's lambda_recon deltas are against its schedule, not against our default (lambda_recon = 0): those
     rows take their delta, sign and noise verdict from the schedule row; the others from our reference."""
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location("tradeoff", Path(__file__).parents[1] / "benchmarks" / "tradeoff.py")
-    tradeoff = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(tradeoff)
+    tradeoff = load_benchmark("tradeoff")
     names = {a[0] for a in tradeoff.ABLATIONS}
     assert set(tradeoff.PAPER_BASIS) <= names and set(tradeoff.PAPER_BASIS.values()) <= names
     sched = {"name": tradeoff._SCHEDULE, "psnr_avg": 28.3, "delta": -0.3}
@@ -320,13 +316,10 @@ def test_every_ablation_changes_something_from_the_reference():
     measured nothing, +0.000 dB, after the defaults moved to spread proxies and context 4): each row changes a fit
     setting from FitConfig's default, or renders with another gate mode."""
     import dataclasses
-    import importlib.util
 
     from proxycodec.train import FitConfig
 
-    spec = importlib.util.spec_from_file_location("tradeoff", Path(__file__).parents[1] / "benchmarks" / "tradeoff.py")
-    tradeoff = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(tradeoff)
+    tradeoff = load_benchmark("tradeoff")
     defaults = {f.name: f.default for f in dataclasses.fields(FitConfig)}
     for name, overrides, gate_mode, _, _ in tradeoff.ABLATIONS:
         assert set(overrides) <= set(defaults), name
