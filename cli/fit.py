@@ -82,6 +82,9 @@ _no_undistort_option = click.option(
             help="Stage 2, with the rate term: learn a quantisation level per cell of a CELLS^3 grid over the "
                  "anchors (per attribute, proxies and leaves apart; step x 2^(level/4)), as HAC++ adapts its steps "
                  "by position. 0: per-channel steps only.")
+@fit_option("--lr-quant-step", type=click.FloatRange(0.0, min_open=True), show_default=True,
+            help="Stage 2, with the rate term: Adam's learning rate on the log of each channel's quantisation "
+                 "step (how fast the grids can coarsen to what --lambda-rate asks).")
 @fit_option("--stage2-start", type=click.FloatRange(0.05, 1.0), show_default=True,
             help="Fraction of the run at which the anchor set freezes and stage 2 (proxies) begins.")
 @fit_option("--recon-loss", type=click.Choice(["mse+cos", "mse", "l1"]), show_default=True,
@@ -128,8 +131,8 @@ _no_undistort_option = click.option(
 @user_errors
 def fit(dataset, out, iters, time_budget, max_width, seed, no_gate, embedding, fixed_res, xi_sampling, xi_full_share,
         film_hidden, stats_min_xi, no_proxies, proxy_ratio, proxy_selection, predictor_hidden, predictor_blocks,
-        predictor_warmup, predictor_context, predict_offsets, lambda_rate, quant_cells, stage2_start, recon_loss,
-        lambda_recon, predictor_kind,
+        predictor_warmup, predictor_context, predict_offsets, lambda_rate, quant_cells, lr_quant_step, stage2_start,
+        recon_loss, lambda_recon, predictor_kind,
         gate_kappa, gate_eta, voxel_size, voxel_rule, max_anchors, init_points, images, test_every, no_undistort, resume, checkpoint_every,
         keep_checkpoint, backend, explicit, sh_degree, max_gaussians) -> None:
     """Train an anchor scene on DATASET's photos (a Blender/NeRF-Synthetic or COLMAP folder, detected by its files).
@@ -165,6 +168,7 @@ def fit(dataset, out, iters, time_budget, max_width, seed, no_gate, embedding, f
                     predictor_hidden=predictor_hidden, predictor_blocks=predictor_blocks,
                     predictor_warmup=predictor_warmup, predictor_context=predictor_context,
                     predict_offsets=predict_offsets, lambda_rate=lambda_rate, quant_cells=quant_cells,
+                    lr_quant_step=lr_quant_step,
                     stage2_start=stage2_start,
                     xi_sampling=xi_sampling,
                     xi_full_share=xi_full_share, film_hidden=film_hidden, stats_min_xi=stats_min_xi, **run)
@@ -240,6 +244,10 @@ def eval_cmd(scene, dataset, out_dir, max_width, res, protocol, n_views, images,
     fit_meta = meta.get("fit", {}) if isinstance(meta.get("fit"), dict) else {}
     if max_width is None:
         max_width = (fit_meta.get("config") or {}).get("max_width")
+        if not fit_meta and getattr(model, "cameras", None):
+            # a container or a Scaffold-GS output: no fit record, but the cameras it carries are the fit's, at
+            # its 100% reference (without this a lego fit at 400 px was scored at the photos' 800)
+            max_width = max(int(c.width) for c in model.cameras)
     data = _load_data(dataset, max_width, images, test_every, not no_undistort)
     if background is not None:
         model.background = background

@@ -244,6 +244,28 @@ class TestGateSwitches:
             apply_gate_mode(ExplicitModel.__new__(ExplicitModel), "on")
 
 
+def test_eval_scores_a_container_at_its_fits_reference_width(tiny, tmp_path):
+    """eval without --max-width scores a container at the reference its fit trained at (read from the cameras it
+    carries: a container holds no fit record), as it scores the fitted PLY, not at the photos' width;
+    --max-width still wins."""
+    from proxycodec import codec
+
+    out = tmp_path / "half.ply"
+    r = CliRunner().invoke(_cli(), ["fit", str(tiny[0]), "-o", str(out), "--iters", "4", "--init-points", "200",
+                                    "--max-width", str(SIZE // 2), "--no-proxies"])
+    assert r.exit_code == 0, r.output
+    codec.encode(out, tmp_path / "half.pxc", distill=False, predictor_iters=2)
+    widths = {}
+    for name, scene, extra in (("ply", out, []), ("pxc", tmp_path / "half.pxc", []),
+                               ("forced", tmp_path / "half.pxc", ["--max-width", str(SIZE)])):
+        r = CliRunner().invoke(_cli(), ["eval", str(scene), str(tiny[0]), "-o", str(tmp_path / name), "--res",
+                                        "0.5,1.0", "--views", "1", *extra])
+        assert r.exit_code == 0, r.output
+        rep = json.loads((tmp_path / name / "eval.json").read_text())
+        widths[name] = [d["width"] for d in rep["per_resolution"]]
+    assert widths == {"ply": [SIZE // 4, SIZE // 2], "pxc": [SIZE // 4, SIZE // 2], "forced": [SIZE // 2, SIZE]}
+
+
 def _cli():
     from proxycodec.cli.main import cli
 
