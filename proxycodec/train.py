@@ -186,7 +186,11 @@ class FitConfig:
     # weights at 0.002 dB below the fitted scene, against 6.9x without the term (5e-5: 11.4x); the fitted scene itself scores
     # 1.22 dB below a fit without it (SPEC.md section 4, "Entropy coding"): --lambda-rate 0 for the most quality.
     lambda_rate: float = 1e-4
-    lr_quant_step: float = 2e-3  # Adam on the log of each channel's step
+    # [D] Adam on the log of each channel's step, 1e-2: the grids coarsen as far as lambda_rate asks within a short
+    # stage 2. At 2e-3 (the default up to 2026-11-29) bonsai's 600-s fit ended on ~6-bit grids, 44% more bytes for
+    # +0.14 dB; lego's 900-s fit within the ablations' noise (-15% bytes, -0.58 dB; benchmarks/README.md,
+    # "The grids' learning rate")
+    lr_quant_step: float = 1e-2
     # Per-cell quantisation levels (with the rate term; HAC++'s adaptive step, by position): the anchors' voxel
     # bounding box in quant_cells^3 cells, and per cell, attribute and proxy/leaf a learned level: the step is the
     # channel's x 2^(level / 4), level in [-8, 8] (straight-through), stored in the scene metadata and the
@@ -217,6 +221,9 @@ class FitConfig:
                         context=self.predictor_context)  # validates width, depth and context
         if not (math.isfinite(self.lambda_rate) and self.lambda_rate >= 0):
             raise ProxycodecError(f"lambda_rate must be >= 0, got {self.lambda_rate}")
+        if not all(math.isfinite(v) and v > 0 for v in (self.lr_quant_step, self.lr_quant_level)):
+            raise ProxycodecError(f"the grids' learning rates must be positive, got lr_quant_step "
+                                  f"{self.lr_quant_step} and lr_quant_level {self.lr_quant_level}")
         if not (0 <= self.quant_cells <= MAX_LEVEL_CELLS):
             raise ProxycodecError(f"quantisation cells must be in [0, {MAX_LEVEL_CELLS}], got {self.quant_cells}")
         if self.quant_cells and not self.lambda_rate > 0:

@@ -154,6 +154,9 @@ class TestConfig:
         with pytest.raises(ProxycodecError, match="quantisation cells"):
             FitConfig(quant_cells=33)
         assert FitConfig(quant_cells=8).quant_cells == 8
+        for bad in (0.0, -1e-3, float("nan")):
+            with pytest.raises(ProxycodecError, match="learning rates must be positive"):
+                FitConfig(lr_quant_step=bad)
 
     def test_anchor_growing_ends_where_stage_2_starts_unless_told_otherwise(self):
         from proxycodec.train import FitConfig
@@ -367,6 +370,25 @@ class TestFit:
         assert m2.scene.metadata["quant_steps"]["offsets"]["step"] == pytest.approx(grids["offsets"]["step"],
                                                                                     rel=1e-3)
         assert torch.allclose(m2.scene.offsets, m.scene.offsets, atol=1e-3)
+
+    def test_the_grids_coarsen_at_the_pace_lr_quant_step_sets(self, data, tmp_path):
+        """fit --lr-quant-step: two runs alike but for the grids' learning rate (the same up to the stage switch, so
+        on the same starting grids) end on coarser grids with the faster one: the rate's pull, not a fixed depth,
+        sets them, at the pace the option gives. Adam moves a log-step by about ``lr`` per step (at most ~3.2 lr
+        with betas 0.9 / 0.999), so the two differ by no more than that allows in the stage-2 iterations."""
+        from proxycodec.model import SceneModel
+
+        slow, fast = 2e-4, 5e-2
+        log_steps = {}
+        for lr in (slow, fast):
+            cfg = small_config(iters=24, lambda_rate=1e-3, lr_quant_step=lr)
+            _fit(data, tmp_path / f"g{lr}.ply", cfg)
+            grids = SceneModel.load(tmp_path / f"g{lr}.ply").scene.metadata["quant_steps"]
+            log_steps[lr] = np.concatenate([np.log(g["step"]) for g in grids.values()])
+        moved = log_steps[fast] - log_steps[slow]
+        assert moved.mean() > 0.1 and (moved > 0).mean() > 0.8, moved
+        iters2 = 24 - int(24 * small_config().stage2_start)
+        assert np.abs(moved).max() <= 3.2 * (fast + slow) * iters2, moved
 
     def test_per_cell_levels_render_on_the_grids_the_container_decodes(self, data, tmp_path):
         """fit --quant-cells: each anchor's values lie on its cell's grid (channel step x 2^(level / 4)), the levels
