@@ -58,9 +58,12 @@ class ConvertConfig:
     # 32.38 dB against 31.55 for the settings used before. Resolutions drawn uniformly (no share at 100%). [D] The
     # rate term at fit's weight (1e-4): on bonsai's 300k-Gaussian PLY (20 minutes of training each) the container
     # is 35% smaller (556,352 B against 858,895; 1/9.0 of the SPZ against 1/5.8) for -0.49 dB against the source's
-    # renders and -0.06 against the photos (SPEC.md section 11).
+    # renders and -0.06 against the photos (SPEC.md section 11). [D] The grids learn at the former 2e-3, not fit's
+    # 1e-2: conversion's ~2,000 stage-2 steps reach their balance at 2e-3, and on a 300k-Gaussian bonsai PLY 1e-2
+    # took only 3.3% off the container for -0.46 dB (benchmarks/README.md, "The grids' learning rate").
     fit: FitConfig = field(default_factory=lambda: FitConfig(iters=4000, max_width=800, lr_warmup=0.0,
-                                                             xi_full_share=0.0, lambda_rate=1e-4))
+                                                             xi_full_share=0.0, lambda_rate=1e-4,
+                                                             lr_quant_step=2e-3))
     voxel_size: float = 0.0  # <= 0: automatic (choose_voxel)
     keep: float = 0.9  # automatic voxel: share of the Gaussians' weight the anchors' K slots must hold
     # automatic voxel: at most this many anchors (None: as many as the keep rule asks; SPEC.md section 11)

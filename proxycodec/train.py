@@ -189,7 +189,7 @@ class FitConfig:
     # [D] Adam on the log of each channel's step, 1e-2: the grids coarsen as far as lambda_rate asks within a short
     # stage 2. At 2e-3 (the default up to 2026-11-29) bonsai's 600-s fit ended on ~6-bit grids, 44% more bytes for
     # +0.14 dB; lego's 900-s fit within the ablations' noise (-15% bytes, -0.58 dB; benchmarks/README.md,
-    # "The grids' learning rate")
+    # "The grids' learning rate"). Conversion keeps 2e-3 (ConvertConfig.fit).
     lr_quant_step: float = 1e-2
     # Per-cell quantisation levels (with the rate term; HAC++'s adaptive step, by position): the anchors' voxel
     # bounding box in quant_cells^3 cells, and per cell, attribute and proxy/leaf a learned level: the step is the
