@@ -235,7 +235,7 @@ def eval_cmd(scene, dataset, out_dir, max_width, res, protocol, n_views, images,
         EXTRA_RESOLUTIONS, MAIN_RESOLUTIONS, MIP_SPLATTING_SCALES, evaluate, report_markdown, write_report,
     )
     from ..explicit import ExplicitModel
-    from ..model import apply_gate_mode
+    from ..model import apply_gate_mode, reference_width
     from ..scenes import load_any
 
     model = on_device(load_any(scene))
@@ -244,10 +244,9 @@ def eval_cmd(scene, dataset, out_dir, max_width, res, protocol, n_views, images,
     fit_meta = meta.get("fit", {}) if isinstance(meta.get("fit"), dict) else {}
     if max_width is None:
         max_width = (fit_meta.get("config") or {}).get("max_width")
-        if not fit_meta and getattr(model, "cameras", None):
-            # a container or a Scaffold-GS output: no fit record, but the cameras it carries are the fit's, at
-            # its 100% reference (without this a lego fit at 400 px was scored at the photos' 800)
-            max_width = max(int(c.width) for c in model.cameras)
+        if not fit_meta:  # a container or a Scaffold-GS output: no fit record, but the fit's cameras (without
+            # this a lego container fitted at 400 px was scored at the photos' 800)
+            max_width = reference_width(model)
     data = _load_data(dataset, max_width, images, test_every, not no_undistort)
     if background is not None:
         model.background = background

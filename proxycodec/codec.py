@@ -34,7 +34,7 @@ from .loop import check_run_length
 from .formats.container import (
     MAGIC, ContainerError, SectionInfo, read_container, read_header, write_container,
 )
-from .model import SceneModel, SceneRender, weights_path_for
+from .model import SceneModel, SceneRender, reference_width, weights_path_for
 from .scaffold_gs import find_scaffold_files, is_scaffold_output, load_scaffold_output
 from .proxy import (
     PredictorConfig, ResidualPredictor, TrainConfig, TrainResult, default_cell_size, predictor_neighbours,
@@ -592,8 +592,7 @@ def _distill(model: SceneModel, fitted: tuple, cfg: EncodeConfig, say: Progress)
     if cfg.images is not None:
         from .formats.datasets import load_dataset
 
-        widths = [c.width for c in model.cameras or []]
-        views = load_dataset(cfg.images, max_width=max(widths) if widths else None)
+        views = load_dataset(cfg.images, max_width=reference_width(model))
         say(f"distilling against the photos of {cfg.images}")
     start = fitted if fitted[0] is not None else None
     return distill(model, fcfg, views=views, start_proxies=start, log=say, min_views=cfg.distill_views,

@@ -205,6 +205,13 @@ def image_to_uint8(image: torch.Tensor) -> np.ndarray:
     return (image.detach().clamp(0, 1).cpu().numpy() * 255.0 + 0.5).astype(np.uint8)
 
 
+def reference_width(model) -> int | None:
+    """The 100% reference width ``model`` was trained at: its cameras' widest (a fitted scene and a container carry
+    the fit's cameras at that width); None for a model without cameras (a plain 3DGS PLY)."""
+    widths = [int(c.width) for c in getattr(model, "cameras", None) or []]
+    return max(widths) if widths else None
+
+
 def apply_gate_mode(model, mode: str) -> dict | None:
     """Force the coverage gate of an anchor model on or off for rendering (``mode`` "on" / "off"), or leave the
     model's own setting ("model"). Returns the gate configuration now in effect (None for a plain 3DGS model, which
