@@ -313,6 +313,48 @@ def _close(a: Camera, b: Camera, tol: float = 1e-6) -> bool:
             and (a.width, a.height) == (b.width, b.height))
 
 
+def _settled(viewer, seen: list) -> Camera:
+    """The browser's camera once it has sent no camera message for 1 s (the orbit controls ease out), after the
+    viewer has sent its frame."""
+    count = [len(seen), time.monotonic()]
+
+    def settled():
+        if len(seen) != count[0]:
+            count[:] = [len(seen), time.monotonic()]
+        return time.monotonic() - count[1] > 1.0
+
+    wait_for(settled, 20, "the camera to settle")
+    return wait_for(lambda: seen[-1] if viewer.last_frame is not None and _close(viewer.last_frame.camera, seen[-1])
+                    else None, 20, "the frame of the browser's last camera")
+
+
+def _shows(browser, viewer, ref: np.ndarray, camera: Camera, seen: list, bad_png, timeout: float = 30.0):
+    """Wait until two screenshots in a row are within 30 dB of ``ref`` (the page settled on our render of
+    ``camera``); on a timeout, fail with what the page showed instead (and keep that screenshot in ``bad_png``)."""
+    deadline, before, raw, img = time.monotonic() + timeout, False, b"", None
+    while time.monotonic() < deadline:
+        raw, img = browser.screenshot()
+        ok = img.shape == ref.shape and _psnr(img, ref) > 30
+        if ok and before:
+            return raw, img
+        before = ok
+        time.sleep(0.2)
+    bad_png.write_bytes(raw)
+    f = viewer.last_frame
+    why = [f"screenshot {img.shape} against our render {ref.shape}"]
+    if img.shape == ref.shape:
+        why.append(f"PSNR {_psnr(img, ref):.2f} dB")
+    if f is not None and f.display.shape == img.shape:
+        why.append(f"{_psnr(img, f.display):.2f} dB against the viewer's last frame")
+    if f is not None:
+        off = np.abs(f.camera.world_to_camera - camera.world_to_camera).max()
+        why.append(f"last frame {off:.2e} off the camera, {f.stats['width']} x {f.stats['height']} px at xi {f.xi}")
+    if seen:
+        off = np.abs(seen[-1].world_to_camera - camera.world_to_camera).max()
+        why.append(f"{len(seen)} camera messages, the last {off:.2e} off, {seen[-1].width} x {seen[-1].height} px")
+    raise AssertionError(f"the page did not settle on our render ({bad_png}): " + "; ".join(why))
+
+
 def test_browser_shows_our_render(viewer, tiny, tmp_path):
     """Load the page in headless Chromium, move the camera from the server, then by dragging in the page: the browser
     reports back the pose it was given (the convention, through three.js), a viser object placed at a known point
@@ -348,17 +390,14 @@ def test_browser_shows_our_render(viewer, tiny, tmp_path):
         target = Camera.look_at((1.7, -1.9, 1.25), (0.1, 0.05, 0.3), fov_x_deg=62, width=W, height=H)
         set_client_camera(client, target, CENTER)
         wait_for(lambda: any(_close(c, target) for c in seen), 20, "the browser to report the new camera")
+        shown = _settled(viewer, seen)
+        assert _close(shown, target), ("the browser moved on from the camera it was given: "
+                                       f"{np.abs(shown.world_to_camera - target.world_to_camera).max():.2e} off, "
+                                       f"fy {shown.fy / target.fy - 1:+.2e}, {shown.width} x {shown.height} px")
         ref = upscale_nearest(image_to_uint8(tiny.render(target, viewer.xi).image), W, H)
         browser.evaluate(ONLY_THE_CANVAS)
 
-        previous = [None]
-
-        def matches():  # a screenshot close to our render, and the same as the one before (the page settled)
-            raw, img = browser.screenshot()
-            same, previous[0] = previous[0] is not None and np.array_equal(previous[0], img), img
-            return (raw, img) if same and img.shape == ref.shape and _psnr(img, ref) > 30 else None
-
-        raw, img = wait_for(matches, 20, "the screenshot to show our render", step=0.2)
+        raw, img = _shows(browser, viewer, ref, target, seen, tmp_path / "first_mismatch.png")
         psnr = _psnr(img, ref)
         shot = tmp_path / "view_screenshot.png"
         shot.write_bytes(raw)
@@ -394,19 +433,10 @@ def test_browser_shows_our_render(viewer, tiny, tmp_path):
         n1 = viewer.frames_sent
         browser.drag(0.5 * W, 0.5 * H, 0.65 * W, 0.45 * H)
         wait_for(lambda: viewer.frames_sent > n1, 20, "a frame after the drag")
-        count = [len(seen), time.monotonic()]
-
-        def settled():  # no camera message for 1 s (the orbit controls ease out after the release)
-            if len(seen) != count[0]:
-                count[:] = [len(seen), time.monotonic()]
-            return time.monotonic() - count[1] > 1.0
-
-        wait_for(settled, 20, "the camera to settle")
-        last = wait_for(lambda: seen[-1] if viewer.last_frame is not None and _close(viewer.last_frame.camera, seen[-1])
-                     else None, 20, "the frame of the browser's last camera")
+        last = _settled(viewer, seen)
         assert not _close(last, target), "the drag did not move the camera"
         ref = upscale_nearest(image_to_uint8(tiny.render(last, viewer.xi).image), W, H)
-        _, img = wait_for(matches, 20, "the screenshot after the drag", step=0.2)
+        _, img = _shows(browser, viewer, ref, last, seen, tmp_path / "drag_mismatch.png")
         print(f"after the drag: PSNR {_psnr(img, ref):.2f} dB")
     finally:
         browser.close()
