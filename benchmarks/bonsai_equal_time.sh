@@ -10,7 +10,7 @@
 # view: benchmarks/supersample.py].
 # Re-runnable: a finished step (its output present) is skipped; an interrupted fit (ours or 3DGS) continues with
 # --resume (Ctrl-C writes its checkpoint; a SIGSTOPped step counts its pause, so resume with the budget plus the
-# pause). One training at a time (never two at once).
+# pause). One training at a time (never two at once). SEED (default 0) is every fit's --seed.
 set -euo pipefail
 BUDGET=${1:-7200}
 OUT=${2:-/tmp/proxycodec_bonsai_equal_time}
@@ -28,7 +28,8 @@ fit() {  # name, extra fit options...
   if [ ! -f "$OUT/$name.ply" ]; then
     local resume=()
     [ -f "$OUT/$name.ckpt.pxc" ] && resume=(--resume)
-    $PC fit "$DATA" --max-width 800 --time-budget "$BUDGET" -o "$OUT/$name.ply" --keep-checkpoint "${resume[@]}" "$@" \
+    $PC fit "$DATA" --max-width 800 --time-budget "$BUDGET" --seed "${SEED:-0}" -o "$OUT/$name.ply" --keep-checkpoint \
+      "${resume[@]}" "$@" \
       >> "$OUT/$name.fit.log" 2>&1
   fi
   evaluate "$name" "$OUT/$name.ply" $([[ " $* " == *" --explicit "* ]] && echo --max-width 800)
