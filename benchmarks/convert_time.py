@@ -17,10 +17,11 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
 import subprocess
 import sys
 from pathlib import Path
+
+from proxycodec.fileio import atomic_write, write_bytes_atomic
 
 REPO = Path(__file__).resolve().parents[1]
 CONVERTED = "proxycodec (converted)"
@@ -67,11 +68,12 @@ def trend(rows: list[dict], bar: float) -> dict | None:
 
 
 def markdown(scene: str, ply: str, rows: list[dict], tr: dict | None) -> str:
+    machine = rows[0]["machine"]
     lines = [f"# Conversion against training time ({scene}; benchmarks/convert_time.py)", "",
-             f"Input: `{ply}`. Machine: {rows[0]['machine'].get('cpu_model')}, {rows[0]['machine']['cpu_count']} cores; "
+             f"Input: `{ply}`. Machine: {machine.get('cpu_model')}, {machine['cpu_count']} cores; "
              f"torch {rows[0]['versions']['torch']}; seed {rows[0]['seed']}.", "",
-             "| budget (s) | iterations | anchors | bytes | SPZ / container | 10% | 100% | avg vs source | avg vs photos "
-             "| peak RSS (MB) |", "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+             "| budget (s) | iterations | anchors | bytes | SPZ / container | 10% | 100% | avg vs source "
+             "| avg vs photos | peak RSS (MB) |", "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for r in rows:
         ratio = f"{r['spz_ratio']:.2f}" if r["spz_ratio"] else "-"
         lines.append(f"| {r['budget_s']:g} | {r['iterations']:,} | {r['anchors']:,} | {r['bytes']:,} | {ratio} | "
@@ -80,9 +82,10 @@ def markdown(scene: str, ply: str, rows: list[dict], tr: dict | None) -> str:
     if tr:
         reach = (f"{tr['seconds_to_bar']:,.0f} s ({tr['seconds_to_bar'] / 3600:.1f} h) of training"
                  if tr["seconds_to_bar"] else "never (no gain with time)")
-        lines += ["", f"Least squares on log2(seconds): **{tr['db_per_doubling']:+.2f} dB per doubling** of the training "
-                      f"time (residuals {', '.join(f'{e:+.2f}' for e in tr['residuals_db'])} dB); the line reaches "
-                      f"{tr['bar_db']:g} dB at {reach}, a trend of these points, not a measurement."]
+        residuals = ", ".join(f"{e:+.2f}" for e in tr["residuals_db"])
+        lines += ["", f"Least squares on log2(seconds): **{tr['db_per_doubling']:+.2f} dB per doubling** of the "
+                      f"training time (residuals {residuals} dB); the line reaches {tr['bar_db']:g} dB at {reach}, "
+                      "a trend of these points, not a measurement."]
     lines += ["", "PSNR in dB against the source's anti-aliased renders on the held-out views (avg over 10%..100%), "
                   "and against the test photos."]
     return "\n".join(lines) + "\n"
@@ -110,15 +113,8 @@ def plot(rows: list[dict], tr: dict | None, path: Path) -> None:
     ax.grid(alpha=0.3)
     ax.legend()
     fig.tight_layout()
-    tmp = path.with_suffix(".tmp.png")
-    fig.savefig(tmp, dpi=120)
-    os.replace(tmp, path)
-
-
-def _write(path: Path, text: str) -> None:
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
+    with atomic_write(path) as fh:
+        fig.savefig(fh, format="png", dpi=120)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -148,9 +144,9 @@ def main(argv: list[str] | None = None) -> int:
     rows.sort(key=lambda r: r["train_s"])
     tr = trend(rows, a.bar)
     md = markdown(scene, ply, rows, tr)
-    _write(out / "convert_time.md", md)
-    _write(out / "convert_time.json", json.dumps({"scene": scene, "input": ply, "max_width": a.max_width,
-                                                   "rows": rows, "trend": tr}, indent=1))
+    write_bytes_atomic(out / "convert_time.md", md.encode())
+    write_bytes_atomic(out / "convert_time.json", json.dumps({"scene": scene, "input": ply, "max_width": a.max_width,
+                                                              "rows": rows, "trend": tr}, indent=1).encode())
     plot(rows, tr, out / "psnr_vs_time.png")
     print(md)
     return 0
