@@ -386,7 +386,7 @@ def _build(model: SceneModel, fitted: tuple, cfg: EncodeConfig, predictor: Resid
     scene = model.scene
     K, Fd, voxel = scene.n_offsets, scene.feat_dim, float(scene.voxel_size)
     pos = scene.positions.detach().cpu().numpy().astype(np.float32)
-    coding = encode_positions(pos, voxel, cfg.positions)
+    coding = encode_positions(pos, voxel, cfg.positions, scene.metadata.get("grid_shift"))
     feats, offs, scal = (getattr(scene, k).detach().float().cpu()[torch.from_numpy(coding.order)].numpy()
                          for k in ("features", "offsets", "scalings"))
     pos_sorted = pos[coding.order]

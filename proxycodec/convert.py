@@ -139,16 +139,38 @@ class CanonicalFrame:
         m[:3, 3] = self.scale * m[:3, 3] - m[:3, :3] @ self.center
         return replace(cam, world_to_camera=m)
 
+    def positions_out(self, positions: torch.Tensor, voxel: float) -> tuple[torch.Tensor, list[float] | None]:
+        """Canonical anchor positions -> (world positions, the world grid's node 0 or None). The map is
+        ``scale * p + center``; where every position is a node i x voxel / 2^j of the canonical grid (as ``fit``
+        places anchors), the world position is that node's on the world grid through ``center``, f32(center + i x
+        scale x voxel / 2^j) (``sections.grid_to_xyz``; within float32 rounding of the map), so that ``encode``
+        codes the integers i (an octree, the scene's ``grid_shift``) instead of float32 positions."""
+        from .sections import grid_positions, grid_to_xyz
+
+        c = torch.as_tensor(self.center, dtype=torch.float64, device=positions.device)
+        affine = (positions.detach().double() * self.scale + c).float()
+        on = grid_positions(positions.detach().cpu().numpy(), voxel) if len(positions) else None
+        if on is None:
+            return affine, None
+        ii, info = on
+        shift = [float(v) for v in self.center]
+        # the world grid's step at this subdivision: world voxel / 2^j, as encode's grid search divides it
+        world = float(voxel * self.scale) / (voxel / info["step"])
+        on_world = torch.from_numpy(grid_to_xyz(ii, world, "f64", shift)).to(positions.device)
+        if float((on_world.double() - affine.double()).abs().max()) > 1e-3 * world:  # a safeguard: never moves
+            return affine, None
+        return on_world, shift
+
     def model_out(self, model: SceneModel) -> SceneModel:
         """A scene trained in this frame, in world units: positions moved back, every log scaling shifted by
         log(scale) (offsets are in units of the first three), the decoder's length unit and embedding frame scaled;
         it renders from world cameras what the canonical scene renders from canonical ones."""
         s = model.scene
-        c = torch.as_tensor(self.center, dtype=torch.float64, device=s.positions.device)
-        pos = (s.positions.detach().double() * self.scale + c).float()
+        pos, shift = self.positions_out(s.positions, s.voxel_size)
         scal = (s.scalings.detach().double() + math.log(self.scale)).float()
+        meta = {k: v for k, v in s.metadata.items() if k != "grid_shift"}
         scene = AnchorScene(pos, s.features.detach(), s.offsets.detach(), scal, float(s.voxel_size * self.scale),
-                            dict(s.metadata)).validate()
+                            {**meta, **({} if shift is None else {"grid_shift": shift})}).validate()
         cfg = model.decoder.config
         dcfg = replace(cfg, scene_center=tuple(float(v) for v in self.center + self.scale * np.asarray(
             cfg.scene_center, dtype=np.float64)), scene_radius=float(cfg.scene_radius * self.scale),

@@ -46,8 +46,10 @@ SCENE_FORMAT_LEVELS = 5
 #: octree-coded, ``proxycodec.octree``), "entropy" (format 4's coding), "levels" (format 5's), "variant" (format
 #: 3's). A reader refuses a feature it does not know ("upgrade"), so later features need no new number. Written only
 #: for files that use a feature formats 2-5 cannot say (octree positions: ``encode --positions octree``).
+#: "shift" (a later feature): the octree's grid passes through ``meta["positions"]["shift"]`` (float64 xyz) instead of
+#: the origin: x = f32(shift + i x step), the grid of a scene trained in another frame (``convert``'s canonical one).
 SCENE_FORMAT_OCTREE = 6
-SCENE_FEATURES = ("entropy", "levels", "octree", "variant")
+SCENE_FEATURES = ("entropy", "levels", "octree", "shift", "variant")
 SUPPORTED_SCENE_FORMATS = (1, 2, 3, 4, 5, 6)
 POSITION_CODINGS = ("delta", "octree")
 FLOAT_BITS = 32  # "bits" value meaning: store float32, no quantisation
@@ -279,7 +281,11 @@ def quantize_step(x: np.ndarray, step: np.ndarray, origin: np.ndarray, levels: n
     return q, {"bits": bits, "offset": [float(v) for v in origin + lo * step], "scale": [float(v) for v in step]}
 
 
-def grid_to_xyz(ii: np.ndarray, step: float, rule: str) -> np.ndarray:
+def grid_to_xyz(ii: np.ndarray, step: float, rule: str, shift=None) -> np.ndarray:
+    """Grid coordinates -> float32 positions under ``rule`` ("f64", "f32"); ``shift`` (float64 xyz, "f64" only):
+    the grid's node 0."""
+    if shift is not None:
+        return (np.asarray(shift, dtype=np.float64) + ii.astype(np.float64) * step).astype(np.float32)
     if rule == "f64":
         return (ii.astype(np.float64) * step).astype(np.float32)
     return ii.astype(np.float32) * np.float32(step)
@@ -317,22 +323,31 @@ def weights_from_sections(prefix, sections, err) -> dict[str, np.ndarray]:
 
 
 # ---------------------------------------------------------------------------------------------- writing
-def grid_positions(pos: np.ndarray, voxel: float) -> tuple[np.ndarray, dict] | None:
+def grid_positions(pos: np.ndarray, voxel: float, shift=None) -> tuple[np.ndarray, dict] | None:
     """Integer grid coordinates reproducing ``pos`` (float32) exactly, or None when the anchors are off-grid.
 
     Tries steps voxel / 2^j and two reconstruction rules: "f64" x = f32(i * step) computed in float64 (numpy),
-    "f32" x = f32(i) * f32(step) in float32 (what Scaffold-GS's torch code does).
+    "f32" x = f32(i) * f32(step) in float32 (what Scaffold-GS's torch code does); then, given a ``shift`` (float64
+    xyz: where a scene trained in another frame has its grid's node 0), "f64" x = f32(shift + i * step).
     """
     p64 = pos.astype(np.float64)
-    for j in range(GRID_SUBDIVISIONS + 1):
-        step = voxel / (1 << j)
-        i = np.rint(p64 / step)
-        if len(i) and np.abs(i).max() >= 2**31 - 1:
-            return None
-        ii = i.astype(np.int64)
-        for rule in ("f64", "f32"):
-            if np.array_equal(grid_to_xyz(ii, step, rule), pos):
-                return ii, {"mode": "grid", "step": step, "rule": rule}
+    shifts: list = [None]
+    try:  # a scene's own metadata: anything but three finite numbers is no shift
+        sh = [float(v) for v in shift] if shift is not None else []
+        if len(sh) == 3 and all(math.isfinite(v) for v in sh):
+            shifts.append(sh)
+    except (TypeError, ValueError):
+        pass
+    for sh in shifts:
+        for j in range(GRID_SUBDIVISIONS + 1):
+            step = voxel / (1 << j)
+            i = np.rint((p64 if sh is None else p64 - np.asarray(sh)) / step)
+            if len(i) and np.abs(i).max() >= 2**31 - 1:
+                break
+            ii = i.astype(np.int64)
+            for rule in ("f64", "f32") if sh is None else ("f64",):
+                if np.array_equal(grid_to_xyz(ii, step, rule, sh), pos):
+                    return ii, {"mode": "grid", "step": step, "rule": rule, **({} if sh is None else {"shift": sh})}
     return None
 
 
@@ -367,14 +382,15 @@ class PositionCoding:
     info: dict  # meta["positions"]
 
 
-def encode_positions(pos: np.ndarray, voxel: float, coding: str = "delta") -> PositionCoding:
+def encode_positions(pos: np.ndarray, voxel: float, coding: str = "delta", shift=None) -> PositionCoding:
     """Exact grid coordinates when a rule reproduces every float32 position, in Morton order: per-axis deltas in the
     smallest integer type ("delta"), or ``coding="octree"`` an octree of them (``proxycodec.octree``; distinct
     positions only, else deltas); off-grid, the float32 positions themselves (lossless) in the Morton order of their
-    voxels. One order serves every per-anchor section."""
+    voxels. One order serves every per-anchor section. ``shift``: the node 0 of a grid the positions may sit on
+    instead of the origin's (the scene's ``grid_shift``); used with the octree only (format 6 lists it)."""
     if coding not in POSITION_CODINGS:
         raise ProxycodecError(f"position coding {coding!r}: must be one of {', '.join(POSITION_CODINGS)}")
-    grid = grid_positions(pos, voxel)
+    grid = grid_positions(pos, voxel, shift if coding == "octree" else None)
     if grid is not None:
         ii, pinfo = grid
         origin = ii.min(0)
@@ -385,6 +401,8 @@ def encode_positions(pos: np.ndarray, voxel: float, coding: str = "delta") -> Po
         if coding == "octree" and octree.can_code(rel):
             secs, depth = octree.encode(rel)
             return PositionCoding(order, secs, {**base, "coding": "octree", "depth": depth, "coder": octree.CODER})
+        if "shift" in pinfo:  # a shifted grid only as an octree (format 6): the delta files predate "shift"
+            return encode_positions(pos, voxel, coding)
         deltas = np.diff(rel, axis=0, prepend=np.zeros((1, 3), np.int64)).T  # [3, M]
         return PositionCoding(order, {GRID: small_int(np.ascontiguousarray(deltas))}, {**base, "coding": "delta"})
     lo = pos.astype(np.float64).min(0)
@@ -493,6 +511,7 @@ def scene_features(meta: dict) -> list[str]:
     used = {"entropy": "entropy" in meta,
             "levels": any(isinstance(v, dict) and "levels" in v for v in meta["quant"].values()),
             "octree": meta["positions"].get("coding") == "octree",
+            "shift": "shift" in meta["positions"],
             "variant": bool(DecoderConfig.from_json(meta["decoder"]).variant())}
     return sorted(k for k, v in used.items() if v)
 
@@ -706,7 +725,14 @@ def stored_anchors(meta: dict, sections: dict[str, np.ndarray], err: ErrorFactor
         step = float(pinfo["step"])
         if not (math.isfinite(step) and step > 0) or pinfo["rule"] not in ("f64", "f32"):
             raise err("bad grid step or rule")
-        pos = grid_to_xyz(ii, step, pinfo["rule"])
+        shift = pinfo.get("shift")
+        if "shift" in pinfo:
+            if not (octree_coded and "shift" in features):
+                raise err("a shifted grid needs octree positions and the 'shift' feature")
+            if not (isinstance(shift, list) and len(shift) == 3 and pinfo["rule"] == "f64"
+                    and all(isinstance(v, (int, float)) and abs(v) < 1e38 for v in shift)):  # NaN fails too
+                raise err("bad grid shift")
+        pos = grid_to_xyz(ii, step, pinfo["rule"], shift)
     elif pinfo["mode"] == "float32":
         pos = np.ascontiguousarray(_section(sections, XYZ, err, (3, M)).T)
         if pos.dtype != np.float32 or not np.all(np.isfinite(pos)):

@@ -535,6 +535,32 @@ def test_the_container_decodes_the_leaves_the_conversion_trained(tmp_path):
     assert not any("tie rule" in s for s in log)
 
 
+def test_a_conversion_s_anchors_are_stored_as_integers_of_its_grid(tmp_path):
+    """Converted anchors come out on the world grid through the canonical frame's centre (the scene's
+    ``grid_shift``), near the frame's map of the trained positions; encode stores that grid's integers as an octree
+    (scene format 6, feature "shift"), not float32 xyz, and both readers give the positions back bit for bit."""
+    from proxycodec import lite
+    from proxycodec.codec import EncodeConfig, decode, encode
+    from proxycodec.formats.container import read_container
+    from proxycodec.model import SceneModel
+    from proxycodec.sections import grid_positions
+
+    write_inria_ply(tmp_path / "s.ply", _scaled(_ball(300), 10.0, (3.0, 1.0, 2.0)))
+    r = convert(tmp_path / "s.ply", tmp_path / "a.ply", _tiny_config(), log=lambda s: None)
+    m = SceneModel.load(tmp_path / "a.ply")
+    shift = m.scene.metadata["grid_shift"]
+    assert shift == r.model.scene.metadata["grid_shift"] and grid_positions(m.scene.positions.numpy(),
+                                                                            m.scene.voxel_size) is None
+    ii, info = grid_positions(m.scene.positions.numpy(), m.scene.voxel_size, shift)
+    assert info["shift"] == shift and info["rule"] == "f64"
+    encode(tmp_path / "a.ply", tmp_path / "c.pxc", EncodeConfig(predictor_iters=10))
+    pinfo = read_container(tmp_path / "c.pxc").meta["positions"]
+    assert pinfo["coding"] == "octree" and pinfo["shift"] == shift
+    out = decode(tmp_path / "c.pxc").scene.positions
+    assert torch.equal(out.sort(0).values, m.scene.positions.sort(0).values)
+    np.testing.assert_array_equal(lite.decode(tmp_path / "c.pxc").positions, out.numpy())
+
+
 def test_encode_finds_the_tie_rule_of_a_conversion_written_before_the_grid_rule(tmp_path, monkeypatch):
     """A conversion whose predictor says "position" (written before "grid"): encode sees that the rule does not
     reproduce the scene's leaves, says so, and encodes under the rule that does."""

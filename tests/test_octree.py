@@ -199,3 +199,75 @@ def test_positions_the_octree_cannot_hold_fall_back_to_deltas():
     assert encode_positions(off, voxel, "octree").info["mode"] == "float32"
     with pytest.raises(ProxycodecError, match="position coding"):
         encode_positions(pos, voxel, "kd")
+
+
+def _shifted(m, shift):
+    """``m`` with its anchors moved onto the grid through ``shift`` (as a conversion writes its scene)."""
+    from dataclasses import replace
+
+    from proxycodec.sections import grid_positions, grid_to_xyz
+
+    ii, _ = grid_positions(m.scene.positions.numpy(), m.scene.voxel_size)
+    pos = torch.from_numpy(grid_to_xyz(ii, m.scene.voxel_size, "f64", shift))
+    return replace(m, scene=replace(m.scene, positions=pos, metadata={**m.scene.metadata, "grid_shift": shift}))
+
+
+SHIFT = [0.012345678901234, -0.0071, 0.0033]  # a sub-voxel move: on no grid through the origin
+
+
+def test_a_grid_through_the_scene_s_shift_is_stored_as_an_octree(tmp_path):
+    """A scene on the grid through its ``grid_shift`` (``convert``'s canonical frame) keeps octree positions (format 6,
+    feature "shift"), decoded bit for bit by both readers; without the shift, or as deltas (formats older readers
+    read, which predate it), it is on no grid and stores float32 positions."""
+    m = _shifted(tiny_model(300), SHIFT)
+    codec.encode(m, tmp_path / "s.pxc", **FAST)
+    c = read_container(tmp_path / "s.pxc")
+    assert c.meta["scene_format"] == 6 and c.meta["features"] == ["octree", "shift"]
+    assert c.meta["positions"]["shift"] == SHIFT and c.meta["positions"]["coding"] == "octree"
+    out = codec.decode(tmp_path / "s.pxc").scene.positions
+    assert torch.equal(torch.sort(out, 0).values, torch.sort(m.scene.positions, 0).values)
+    np.testing.assert_array_equal(lite.decode(tmp_path / "s.pxc").positions, out.numpy())
+    from dataclasses import replace
+
+    plain = replace(m, scene=replace(m.scene, metadata={"name": "tiny"}))
+    codec.encode(plain, tmp_path / "p.pxc", **FAST)
+    codec.encode(m, tmp_path / "d.pxc", **FAST, positions="delta")
+    for name in ("p.pxc", "d.pxc"):
+        meta = read_container(tmp_path / name).meta
+        assert meta["positions"]["mode"] == "float32" and "shift" not in meta["positions"], name
+        assert torch.equal(codec.decode(tmp_path / name).scene.positions.sort(0).values, out.sort(0).values)
+    sizes = {n: sum(x.stored_size for x in read_container(tmp_path / n).sections
+                    if x.name.startswith("anchors/") and x.name != "anchors/proxy_mask") for n in ("s.pxc", "p.pxc")}
+    assert sizes["s.pxc"] < sizes["p.pxc"], sizes  # an octree of the cells against their float32 xyz (zstd)
+    # a shift the positions do not sit on is not used
+    other = replace(m, scene=replace(m.scene, metadata={**m.scene.metadata, "grid_shift": [0.0, 0.0, 0.001]}))
+    codec.encode(other, tmp_path / "w.pxc", **FAST)
+    assert read_container(tmp_path / "w.pxc").meta["positions"]["mode"] == "float32"
+    from proxycodec.sections import grid_positions
+
+    pos = m.scene.positions.numpy()
+    assert grid_positions(pos, m.scene.voxel_size, SHIFT)[1]["shift"] == SHIFT
+    for bad in ("abc", SHIFT[:2], ["x", 0, 0], [float("nan")] * 3, {"a": 1}):  # a sidecar's junk: no shift
+        assert grid_positions(pos, m.scene.voxel_size, bad) is None, bad
+
+
+def test_a_shifted_grid_must_say_so(tmp_path):
+    m = _shifted(tiny_model(200), SHIFT)
+    codec.encode(m, tmp_path / "s.pxc", **FAST)
+    c = read_container(tmp_path / "s.pxc")
+    pos = c.meta["positions"]
+    cases = {
+        "shift left out of the features": {**c.meta, "features": ["octree"]},
+        "a shift a format-6 reader without it would ignore": {**c.meta, "positions": {**pos, "shift": None}},
+        "a shift of two numbers": {**c.meta, "positions": {**pos, "shift": SHIFT[:2]}},
+        "a shift that is not a number": {**c.meta, "positions": {**pos, "shift": ["0", 0.0, 0.0]}},
+        "a shift beyond float32": {**c.meta, "positions": {**pos, "shift": [1e300, 0.0, 0.0]}},
+        "a shift under the f32 rule": {**c.meta, "positions": {**pos, "rule": "f32"}},
+    }
+    for name, meta in cases.items():
+        p = tmp_path / "bad.pxc"
+        write_container(p, meta, c.arrays, level=1)
+        with pytest.raises(ContainerError):
+            codec.decode(p)
+        with pytest.raises(ContainerError):
+            lite.decode(p)
