@@ -401,10 +401,9 @@ def encode_positions(pos: np.ndarray, voxel: float, coding: str = "delta", shift
         if coding == "octree" and octree.can_code(rel):
             secs, depth = octree.encode(rel)
             return PositionCoding(order, secs, {**base, "coding": "octree", "depth": depth, "coder": octree.CODER})
-        if "shift" in pinfo:  # a shifted grid only as an octree (format 6): the delta files predate "shift"
-            return encode_positions(pos, voxel, coding)
-        deltas = np.diff(rel, axis=0, prepend=np.zeros((1, 3), np.int64)).T  # [3, M]
-        return PositionCoding(order, {GRID: small_int(np.ascontiguousarray(deltas))}, {**base, "coding": "delta"})
+        if "shift" not in pinfo:  # a shifted grid only as an octree (format 6; the delta files predate it): float32
+            deltas = np.diff(rel, axis=0, prepend=np.zeros((1, 3), np.int64)).T  # [3, M]
+            return PositionCoding(order, {GRID: small_int(np.ascontiguousarray(deltas))}, {**base, "coding": "delta"})
     lo = pos.astype(np.float64).min(0)
     cell = np.floor((pos.astype(np.float64) - lo) / voxel).astype(np.int64)
     order = morton_order(cell, pos[:, 0], pos[:, 1], pos[:, 2])

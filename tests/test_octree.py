@@ -249,6 +249,10 @@ def test_a_grid_through_the_scene_s_shift_is_stored_as_an_octree(tmp_path):
     assert grid_positions(pos, m.scene.voxel_size, SHIFT)[1]["shift"] == SHIFT
     for bad in ("abc", SHIFT[:2], ["x", 0, 0], [float("nan")] * 3, {"a": 1}):  # a sidecar's junk: no shift
         assert grid_positions(pos, m.scene.voxel_size, bad) is None, bad
+    from proxycodec.sections import encode_positions
+
+    twice = np.concatenate([pos, pos[:1]])  # a duplicate: no octree, and deltas cannot say the shift
+    assert encode_positions(twice, m.scene.voxel_size, "octree", SHIFT).info["mode"] == "float32"
 
 
 def test_a_shifted_grid_must_say_so(tmp_path):
