@@ -10,6 +10,7 @@ from pathlib import Path
 import click
 
 from ..errors import ProxycodecError
+from ..sections import WEIGHT_DTYPES
 from .common import (
     command_device, config_option, on_device, parse_resolutions, render_views, supersample_option, user_errors,
 )
@@ -37,8 +38,9 @@ def _stderr(msg: str) -> None:
 @encode_option("--feature-bits", show_default=True, type=int, help="Proxy features (1-16, 32 = float).")
 @encode_option("--offset-bits", show_default=True, type=int, help="Offsets (1-16, 32 = float).")
 @encode_option("--scaling-bits", show_default=True, type=int, help="Scalings (1-16, 32 = float).")
-@encode_option("--weights-dtype", show_default=True, type=click.Choice(["f16", "f32", "q8"]),
-               help="MLP weights precision (q8: int8 matrices with per-row scales).")
+@encode_option("--weights-dtype", show_default=True, type=click.Choice(list(WEIGHT_DTYPES)),
+               help="MLP weights precision (qN: int8 matrices on a grid of 2^(N-1)-1 levels each side, per-row "
+                    "scales; every qN reads as q8 does).")
 @encode_option("--max-cameras", show_default=True, type=int,
                help="Default cameras kept in the container (evenly spaced).")
 @encode_option("--predict-offsets/--store-offsets",

@@ -39,6 +39,7 @@ from .camera import Camera, orbit_cameras
 from .decoder import DecoderConfig, GaussianDecoder
 from .model import SceneModel
 from .scene import AnchorScene
+from .sections import DEFAULT_WEIGHTS_DTYPE, weight_levels
 
 VOXEL = 0.04
 K = 10
@@ -176,12 +177,14 @@ def sample_scene(seed: int = 0, voxel: float = VOXEL) -> AnchorScene:
 
 
 def _on_storage_grid(decoder: GaussianDecoder) -> None:
-    """Round every weight matrix to the container's int8 grid (per-row scale max / 127, ``sections``' q8) and every
-    vector to float16, so that storing the decoder with the default weight quantisation changes nothing."""
+    """Round every weight matrix to the grid of encode's default weight quantisation (per-row scale max / L,
+    ``sections.weights_to_sections``; q7: L = 63) and every vector to float16, so that storing the decoder with the
+    defaults changes nothing."""
+    levels = float(weight_levels(DEFAULT_WEIGHTS_DTYPE))
     with torch.no_grad():
         for p in decoder.parameters():
             if p.ndim == 2:
-                scale = (p.abs().amax(1) / 127.0).float()
+                scale = (p.abs().amax(1) / levels).float()
                 scale = torch.where(scale > 0, scale, torch.ones_like(scale))
                 p.copy_(torch.round(p / scale[:, None]) * scale[:, None])
             else:

@@ -56,6 +56,9 @@ FLOAT_BITS = 32  # "bits" value meaning: store float32, no quantisation
 PREDICT_CHUNK = 65536  # leaves per predictor batch (fixed: the same batches in encoder and decoder)
 MAX_ANCHORS = 1 << 28
 QSCALE = ".qscale"  # suffix of the per-row scale section of an int8 ("q8") weight matrix
+# MLP weight precisions: float32, float16, or int8 matrices on a grid of 2^(N-1) - 1 levels each side (qN)
+WEIGHT_DTYPES = ("f32", "f16", "q8", "q7", "q6", "q5", "q4")
+DEFAULT_WEIGHTS_DTYPE = "q7"  # encode's (``EncodeConfig.weights_dtype``); the built-in scene's decoder sits on its grid
 
 LEVEL_MAX = 8  # per-cell quantisation levels are integers in [-LEVEL_MAX, LEVEL_MAX]: steps x 2^(level / 4)
 LEVEL_DIVISOR = 4
@@ -474,18 +477,25 @@ def quantize_anchors(features: np.ndarray, offsets: np.ndarray, scalings: np.nda
     return QuantizedAnchors(sections, quant, feat_dq, off_dq, lv)
 
 
+def weight_levels(dtype: str) -> int | None:
+    """The largest integer of a ``qN`` weights dtype's grid, ``2^(N-1) - 1`` (q8: 127, q6: 31); None for f16/f32."""
+    return (1 << (int(dtype[1:]) - 1)) - 1 if dtype in WEIGHT_DTYPES and dtype.startswith("q") else None
+
+
 def weights_to_sections(prefix: str, arrays: dict[str, np.ndarray], dtype: str) -> dict[str, np.ndarray]:
-    """f32; f16 (where representable); or q8: matrices as int8 with a float32 scale per output row
-    (symmetric, ``w = q * scale``), vectors (biases) as f16."""
+    """f32; f16 (where representable); or qN (N = 4..8): matrices as int8 on the grid -L..L, L = 2^(N-1) - 1, with
+    a float32 scale per output row (symmetric, ``w = q * scale``, scale = max |w| / L), vectors (biases) as f16.
+    Every qN is stored (and read) as q8 is: N < 8 only leaves fewer distinct values for zstd."""
     out = {}
+    levels = weight_levels(dtype)
     for k, v in arrays.items():
         v = np.asarray(v, dtype=np.float32)
-        if dtype == "q8" and v.ndim == 2:
-            scale = (np.abs(v).max(axis=1) / 127.0).astype(np.float32)
+        if levels and v.ndim == 2:
+            scale = (np.abs(v).max(axis=1) / np.float32(levels)).astype(np.float32)
             safe = np.where(scale > 0, scale, 1.0).astype(np.float32)
-            out[f"{prefix}/{k}"] = np.clip(np.rint(v / safe[:, None]), -127, 127).astype(np.int8)
+            out[f"{prefix}/{k}"] = np.clip(np.rint(v / safe[:, None]), -levels, levels).astype(np.int8)
             out[f"{prefix}/{k}{QSCALE}"] = scale
-        elif dtype in ("f16", "q8") and np.all(np.abs(v) <= 65504.0):
+        elif (dtype == "f16" or levels) and np.all(np.abs(v) <= 65504.0):
             out[f"{prefix}/{k}"] = v.astype(np.float16)
         else:
             out[f"{prefix}/{k}"] = v

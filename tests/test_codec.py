@@ -457,22 +457,33 @@ def test_wrongly_typed_metadata_is_our_error(tmp_path):
         codec.decode(tmp_path / "d.pxc")
 
 
-def test_q8_weights_round_trip_within_half_a_step_and_cameras_are_capped(tmp_path):
+@pytest.mark.parametrize("dtype,levels", [("q8", 127), ("q5", 15)])
+def test_int8_weights_round_trip_within_half_a_step_and_cameras_are_capped(tmp_path, dtype, levels):
     from proxycodec import codec
     from proxycodec.camera import orbit_cameras
 
     m = tiny_model(80)
     m.cameras = orbit_cameras((0.0, 0.0, 0.1), 1.5, 40, width=32, height=24)
-    r = codec.encode(m, tmp_path / "q.pxc", distill=False, weights_dtype="q8", predictor_iters=10, max_cameras=5)
+    r = codec.encode(m, tmp_path / "q.pxc", distill=False, weights_dtype=dtype, predictor_iters=10, max_cameras=5)
     back = codec.decode(tmp_path / "q.pxc")
     for (k, a), (_, b) in zip(r.model.decoder.state_dict().items(), back.decoder.state_dict().items()):
         assert torch.equal(a, b), k  # decode == what encode reported, bit for bit
     for (k, w), (_, d) in zip(m.decoder.state_dict().items(), back.decoder.state_dict().items()):
         if w.ndim == 2:
-            step = w.abs().amax(1, keepdim=True) / 127
+            step = w.abs().amax(1, keepdim=True) / levels
             assert ((w - d).abs() <= step / 2 + 1e-7).all(), k
     assert [c.name for c in back.cameras] == [m.cameras[i].name for i in (0, 8, 16, 24, 32)]
     c = read_scene_container(tmp_path / "q.pxc")
-    assert c.arrays["decoder/mlp_cov.2.weight"].dtype == np.int8 and c.meta["cameras_in_source"] == 40
+    q = c.arrays["decoder/mlp_cov.2.weight"]
+    assert q.dtype == np.int8 and c.meta["cameras_in_source"] == 40 and c.meta["weights_dtype"] == dtype
+    assert np.abs(q.astype(int)).max() == levels  # every row's largest weight sits on the grid's end
     f16 = codec.encode(m, tmp_path / "h.pxc", distill=False, weights_dtype="f16", predictor_iters=10, max_cameras=5)
     assert r.file_bytes < f16.file_bytes
+    if dtype != "q8":  # fewer levels: fewer bytes, and a coarser decoder
+        q8 = codec.encode(m, tmp_path / "q8.pxc", distill=False, weights_dtype="q8", predictor_iters=10,
+                          max_cameras=5)
+        assert r.file_bytes < q8.file_bytes
+        w8 = codec.decode(tmp_path / "q8.pxc").decoder.state_dict()
+        err = {n: sum(float((w - b[k]).abs().sum()) for k, w in m.decoder.state_dict().items() if w.ndim == 2)
+               for n, b in (("q8", w8), (dtype, back.decoder.state_dict()))}
+        assert err[dtype] > 2 * err["q8"]

@@ -49,7 +49,7 @@ def _model(n=200, seed=0, **decoder_kw) -> SceneModel:
 
 VARIANTS = {
     "film_q8": ({}, {}),
-    "film_q8_context3": ({}, {"predictor_context": 3}),
+    "film_q6_context3": ({}, {"predictor_context": 3, "weights_dtype": "q6"}),
     "additive_f32_predicted_offsets": ({"embedding": "additive"}, {"weights_dtype": "f32", "predict_offsets": True}),
     "none_f16_no_gate_float_bits": ({"embedding": "none", "gate": GateConfig(enabled=False)},
                                     {"weights_dtype": "f16", "feature_bits": 32, "scaling_bits": 12}),

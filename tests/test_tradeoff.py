@@ -356,7 +356,7 @@ def test_encode_sweep_plan_centres_on_the_defaults():
 
     plan = encode_sweep_plan(quick=True)
     assert {n for n, _, _ in plan} == {"proxy_ratio", "leaf_sample", "bits", "zstd_level", "predictor_blocks",
-                                       "entropy", "positions"}
+                                       "entropy", "positions", "weights_dtype"}
     for name, _, knobs in plan:
         assert knobs["use_fitted"] is False
         EncodeConfig(**knobs).check()
@@ -364,6 +364,7 @@ def test_encode_sweep_plan_centres_on_the_defaults():
     assert "encode default (refit)" in ids and "encode proxy_ratio=0.1" in ids
     assert {"encode entropy=zstd", "encode entropy=model"} <= ids  # the default is "auto"
     assert "encode positions=delta" in ids  # the default is "octree"
+    assert {"encode weights_dtype=q8", "encode weights_dtype=q6"} <= ids  # around the default q7
     bits = [k for n, _, k in plan if n == "bits"]
     assert bits and all(k["learned_steps"] is False for k in bits)  # else inert on a rate-trained scene
     assert "encode learned_steps=False, offset_bits=6" in ids

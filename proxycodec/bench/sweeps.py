@@ -80,12 +80,12 @@ def encode_sweep_plan(quick: bool, sweeps: Sequence[str] | None = None) -> list[
     if quick:
         grid = {"proxy_ratio": [0.1, 0.3, 0.6], "leaf_sample": [0.05, 0.2, 0.5],
                 "bits": [(6, 8, 8), (8, 8, 8), (10, 8, 8)], "zstd_level": [3, 19], "predictor_blocks": [1, 2],
-                "entropy": ["zstd", "model"], "positions": ["delta"]}
+                "entropy": ["zstd", "model"], "positions": ["delta"], "weights_dtype": ["q8", "q6"]}
     else:
         grid = {"proxy_ratio": [0.1, 0.2, 0.3, 0.45, 0.6], "leaf_sample": [0.05, 0.1, 0.2, 0.5],
                 "bits": [(6, 8, 8), (8, 8, 8), (10, 8, 8), (8, 6, 6), (8, 10, 10)],
                 "zstd_level": [3, 9, 19, 22], "predictor_blocks": [0, 1, 2, 4], "entropy": ["zstd", "model"],
-                "positions": ["delta"]}
+                "positions": ["delta"], "weights_dtype": ["q8", "q6", "q5"]}
     unknown = set(sweeps or ()) - set(grid)
     if unknown:
         raise ProxycodecError(f"unknown sweep(s) {', '.join(sorted(unknown))}; choose from {', '.join(grid)}")
@@ -104,7 +104,7 @@ def encode_sweep_plan(quick: bool, sweeps: Sequence[str] | None = None) -> list[
             plan.append((name, label, {"use_fitted": False, **knobs}))
     base = {"use_fitted": False, "distill": False, "proxy_ratio": d.proxy_ratio, "leaf_sample": d.leaf_sample,
             "offset_bits": d.offset_bits, "feature_bits": d.feature_bits, "scaling_bits": d.scaling_bits,
-            "zstd_level": d.zstd_level, "predictor_blocks": d.predictor_blocks}
+            "zstd_level": d.zstd_level, "predictor_blocks": d.predictor_blocks, "weights_dtype": d.weights_dtype}
     return [(n, lab, {**base, **k}) for n, lab, k in plan]
 
 
