@@ -29,8 +29,11 @@ pytestmark = pytest.mark.usefixtures("one_thread")
 # distillation. The determinism test runs the defaults.
 PAPER_PROXIES = dict(proxy_selection="random", predictor_context=1)
 # Constant rates too (distill_lr_final 1): the default's decay to 0.1x is measured on lego's 3600 iterations; over
-# 30 it anneals before the tiny scene has moved (held out 50.6 dB against 53.3 for the L_recon container).
-QUICK = dict(FAST, distill=True, distill_iters=30, distill_views=12, distill_lr_scale=0.3, distill_lr_final=1.0,
+# 30 it anneals before the tiny scene has moved (held out 50.6 dB against 53.3 for the L_recon container). At 0.1x
+# the learning rates: the pair's trained scene (the built-in scene's corner, rendered with its decoder on the q7 grid)
+# holds out at 56.5 dB with the L_recon predictor, which 30 steps at 0.3x move away from (51.0; 1.0x: 47.4), 0.1x
+# not (56.1): at these figures the step size, not the distillation, would be measured.
+QUICK = dict(FAST, distill=True, distill_iters=30, distill_views=12, distill_lr_scale=0.1, distill_lr_final=1.0,
              **PAPER_PROXIES)
 
 
