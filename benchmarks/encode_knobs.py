@@ -54,7 +54,13 @@ def parse_knobs(specs: list[str]) -> list[tuple[str, object]]:
         if name not in fields or not values:
             raise SystemExit(f"--knob {spec!r}: expected FIELD=V1,V2 with FIELD one of EncodeConfig's")
         kind = type(getattr(EncodeConfig(), name))
-        out += [(name, kind(v) if kind in (int, float) else v) for v in values.split(",")]
+        for v in values.split(","):
+            if kind is bool:
+                if v.lower() not in ("true", "false"):
+                    raise SystemExit(f"--knob {spec!r}: {name} takes true or false")
+                out.append((name, v.lower() == "true"))
+            else:
+                out.append((name, kind(v) if kind in (int, float) else v))
     return out
 
 
