@@ -3,7 +3,7 @@
     python benchmarks/encode_knobs.py \\
         --fit lego=FIT.ply@../shared/data/nerf_synthetic/lego:8 \\
         --converted bonsai-conv=ANCHORS.ply@POINT_CLOUD.ply@CAMERAS.json:4 \\
-        --knob weights_dtype=q8,q7,q6,q5 --knob entropy_iters=1500,3000,4000
+        --knob weights_dtype=q8,q6,q5 --knob entropy_iters=3000,4000
 
 Every point is ``proxycodec encode SCENE`` (the scene's stage-2 proxies and predictor as fitted) with the defaults
 plus one knob changed; the defaults themselves are the first point of each scene, so every difference is against a
