@@ -39,7 +39,9 @@ from .camera import Camera, orbit_cameras
 from .decoder import DecoderConfig, GaussianDecoder
 from .model import SceneModel
 from .scene import AnchorScene
-from .sections import DEFAULT_WEIGHTS_DTYPE, weight_levels
+from .errors import ProxycodecError
+from .sections import DEFAULT_WEIGHTS_DTYPE, weights_from_sections, weights_to_sections
+from .weights import load_state_arrays
 
 VOXEL = 0.04
 K = 10
@@ -177,18 +179,11 @@ def sample_scene(seed: int = 0, voxel: float = VOXEL) -> AnchorScene:
 
 
 def _on_storage_grid(decoder: GaussianDecoder) -> None:
-    """Round every weight matrix to the grid of encode's default weight quantisation (per-row scale max / L,
-    ``sections.weights_to_sections``; q7: L = 63) and every vector to float16, so that storing the decoder with the
-    defaults changes nothing."""
-    levels = float(weight_levels(DEFAULT_WEIGHTS_DTYPE))
-    with torch.no_grad():
-        for p in decoder.parameters():
-            if p.ndim == 2:
-                scale = (p.abs().amax(1) / levels).float()
-                scale = torch.where(scale > 0, scale, torch.ones_like(scale))
-                p.copy_(torch.round(p / scale[:, None]) * scale[:, None])
-            else:
-                p.copy_(p.half().float())
+    """Put the decoder through the container's weight storage at encode's default precision
+    (``sections.weights_to_sections``, then ``weights_from_sections``: q7 matrices, float16 vectors), so that storing
+    it with the defaults changes nothing."""
+    stored = weights_to_sections("decoder", decoder.state_arrays(), DEFAULT_WEIGHTS_DTYPE)
+    load_state_arrays(decoder, weights_from_sections("decoder", stored, ProxycodecError), "sample decoder")
 
 
 def sample_decoder(scene: AnchorScene) -> GaussianDecoder:
