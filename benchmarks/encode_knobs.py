@@ -18,14 +18,13 @@ Encodes that decode to the same scene (``bench.steps._content_key``: e.g. entrop
 share one quality evaluation. Outputs in ``--out`` (default ``benchmarks/results/encode_knobs``): ``results.json``
 (every figure, machine, versions, seed, peak RSS of each step), ``encode_knobs.md`` and ``encode_knobs.png`` (bytes
 against quality, and bytes against encode seconds, per scene). Each step runs in its own process
-(``proxycodec.bench.steps.run_worker``), one at a time.
+(``proxycodec.bench.runner.spawn_step``, its log beside the container in ``work/``), one at a time.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -34,14 +33,14 @@ REPO = Path(__file__).resolve().parents[1]
 RES = [round(0.1 * i, 1) for i in range(1, 11)]
 
 
-def worker(kind: str, args: dict) -> dict:
-    """One step in a fresh process (its own peak RSS; no state carried between points)."""
-    code = ("import json, sys; from proxycodec.bench.steps import run_worker; "
-            "print(json.dumps(run_worker(sys.argv[1], json.loads(sys.argv[2]))))")
-    r = subprocess.run([sys.executable, "-c", code, kind, json.dumps(args)], capture_output=True, text=True)
-    if r.returncode:
-        raise SystemExit(f"{kind} step failed: {r.stderr.strip()[-600:]}")
-    return json.loads(r.stdout.strip().splitlines()[-1])
+def worker(kind: str, args: dict, log: Path) -> dict:
+    """One step in a fresh process (``bench.runner.spawn_step``: its own peak RSS, its stderr in ``log``)."""
+    from proxycodec.bench.runner import spawn_step
+
+    rec = spawn_step(str(log), kind, args, timeout=7200)
+    if rec["status"] != "ok":
+        raise SystemExit(f"{kind} step failed: {rec['error']}")
+    return rec["result"]
 
 
 def parse_knobs(specs: list[str]) -> list[tuple[str, object]]:
@@ -83,16 +82,17 @@ def scenes(args) -> list[dict]:
 
 
 def quality(scene: dict, pxc: Path) -> dict:
+    log = pxc.with_suffix(".quality.log")
     if scene["kind"] == "converted":
         return worker("vs_source", {"model": str(pxc), "source": scene["source"], "cameras": scene["cameras"],
-                                    "background": [0, 0, 0], "views": scene["views"]})
+                                    "background": [0, 0, 0], "views": scene["views"]}, log)
     from proxycodec.formats.container import read_container
     from proxycodec.model import weights_path_for
 
     fit_meta = read_container(weights_path_for(scene["ply"])).meta.get("fit") or {}
     max_width = (fit_meta.get("config") or {}).get("max_width") or 1600  # as proxycodec bench reads it
     return worker("eval", {"model": str(pxc), "dataset": scene["dataset"], "max_width": max_width,
-                           "views": scene["views"], "resolutions": RES})
+                           "views": scene["views"], "resolutions": RES}, log)
 
 
 def plot(points: list[dict], path: Path) -> None:
@@ -139,13 +139,14 @@ def main() -> int:
     knobs = parse_knobs(args.knob)
     points: list[dict] = []
     t_run = time.perf_counter()
-    for sc in scenes(args):
+    runs = scenes(args)
+    for sc in runs:
         evaluated: dict[str, dict] = {}
         for knob, value in [(None, None), *knobs]:
             tag = "defaults" if knob is None else f"{knob}={value}"
             pxc = out / "work" / f"{sc['name']}_{tag}.pxc"
             k = {"seed": args.seed} if knob is None else {"seed": args.seed, knob: value}
-            enc = worker("encode", {"source": sc["ply"], "out": str(pxc), "knobs": k})
+            enc = worker("encode", {"source": sc["ply"], "out": str(pxc), "knobs": k}, pxc.with_suffix(".encode.log"))
             key = _content_key(pxc)
             shared = key in evaluated
             if not shared:
@@ -162,7 +163,7 @@ def main() -> int:
             print(f"{sc['name']:>14} {tag:<22} {p['bytes']:>10,} B {p['d_bytes']:>+9,} {p['psnr_avg']:8.3f} dB "
                   f"{p['d_psnr']:+7.3f} {p['encode_seconds']:7.1f} s", flush=True)
     doc = {"kind": "proxycodec.encode_knobs", "seed": args.seed, "machine": machine_info(), "versions": versions(),
-           "scenes": scenes(args), "knobs": [[k, v] for k, v in knobs], "points": points,
+           "scenes": runs, "knobs": [[k, v] for k, v in knobs], "points": points,
            "wall_seconds": time.perf_counter() - t_run}
     (out / "results.json").write_text(json.dumps(doc, indent=1))
     lines = ["| scene | knob | bytes | vs defaults | avg PSNR | vs defaults | encode s | vs defaults | peak RSS MB |",
