@@ -12,7 +12,7 @@ from pathlib import Path
 
 import click
 
-from ..errors import ProxycodecError
+from ..errors import ProxycodecError, Terminated
 
 
 def user_errors(fn):
@@ -28,6 +28,9 @@ def user_errors(fn):
         except (FileNotFoundError, IsADirectoryError, PermissionError) as e:
             click.echo(f"error: {e.filename}: {e.strerror}", err=True)
             sys.exit(2)
+        except Terminated:
+            click.echo("terminated (SIGTERM)", err=True)
+            sys.exit(143)
         except KeyboardInterrupt:
             click.echo("interrupted", err=True)
             sys.exit(130)

@@ -1,16 +1,20 @@
 """``proxycodec`` command line: a thin click layer over the library API.
 
-Every user error becomes one line on stderr and exit status 2 (no traceback); an interrupt exits 130.
+Every user error becomes one line on stderr and exit status 2 (no traceback); an interrupt exits 130, SIGTERM 143,
+both after what Ctrl-C keeps is kept (a training run's checkpoint).
 The commands live in sibling modules (plain ``click`` commands); this module makes the group and registers them.
 """
 
 from __future__ import annotations
+
+import signal
 
 import click
 
 from .. import __version__
 from ..devices import CHOICES as DEVICE_CHOICES
 from ..devices import ENV as DEVICE_ENV
+from ..errors import Terminated
 from ..threads import ENV as THREADS_ENV
 from ..threads import set_threads
 from .batch import batch
@@ -42,5 +46,12 @@ for _command in (sample, render, demo, fit, convert, encode, decode, stats, eval
     cli.add_command(_command)
 
 
+def _on_sigterm(signum, frame) -> None:
+    """The first SIGTERM stops the command as Ctrl-C does (a checkpoint is written); a second one kills at once."""
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    raise Terminated
+
+
 def main() -> None:
+    signal.signal(signal.SIGTERM, _on_sigterm)
     cli(prog_name="proxycodec")

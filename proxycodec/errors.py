@@ -16,3 +16,9 @@ class ProxycodecError(ValueError):
         self.path = None if path is None else os.fspath(path)
         self.reason = message
         super().__init__(f"{self.path}: {message}" if self.path else message)
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (a scheduler's stop, ``kill``, ``docker stop``), raised in the main thread by the command line's
+    handler (``cli.main.main``). It is a ``KeyboardInterrupt``, so everything that keeps work on Ctrl-C keeps it here
+    too: a training run writes its checkpoint, a write in progress leaves the old file and no temporary."""

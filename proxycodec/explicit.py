@@ -506,8 +506,12 @@ def run_explicit(data, cfg: ExplicitConfig = ExplicitConfig(), log: ProgressFn |
     log(f"fit --explicit (plain 3DGS): {len(data.train_indices)} training views, {tr.num_gaussians} "
         f"{'' if resume else 'initial '}Gaussians, extent {tr.extent:.3g}, SH degree {cfg.sh_degree}, "
         f"setup {time.perf_counter() - t_setup:.1f} s; iters {cfg.iters}, time budget {cfg.time_budget}")
-    detail = lambda st: f"gauss {tr.num_gaussians:7d}  drawn {st['drawn']:7d}"
-    hist = lambda: {"gaussians": tr.num_gaussians}
+    def detail(st: dict) -> str:
+        return f"gauss {tr.num_gaussians:7d}  drawn {st['drawn']:7d}"
+
+    def hist() -> dict:
+        return {"gaussians": tr.num_gaussians}
+
     run_checkpointed(tr, ckpt, cfg.checkpoint_every, log, detail, hist,
                      (lambda: None) if out is None else (lambda: write_inria_ply(out, tr.result())),
                      keep_checkpoint=keep_checkpoint, stop_after=stop_after)

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -631,7 +632,7 @@ def test_auto_density_follows_the_run_length(data, tmp_path):
     with pytest.raises(KeyboardInterrupt):
         fit(sfm, tmp_path / "r.ply", cfg, dataset_root="tiny", log=lambda s: None, stop_after=14)
     r = fit(sfm, tmp_path / "r.ply", cfg, dataset_root="tiny", log=lambda s: None, resume=True)
-    u = fit(sfm, tmp_path / "u.ply", cfg, dataset_root="tiny", log=lambda s: None)
+    fit(sfm, tmp_path / "u.ply", cfg, dataset_root="tiny", log=lambda s: None)
     assert r.extra_meta["fit"]["density"]["chose"] == "extent" and r.extra_meta["fit"]["config"]["voxel_rule"] == \
         "extent"
     assert (tmp_path / "r.ply").read_bytes() == (tmp_path / "u.ply").read_bytes()
@@ -656,6 +657,40 @@ def test_cli_fit_and_eval(tiny_dataset, tmp_path):
     assert "LPIPS" in rep["lpips"]
     for name in ("eval.md", "psnr_ssim_vs_resolution.png", "crops.png"):
         assert (tmp_path / "ev" / name).stat().st_size > 0
+
+
+def test_cli_fit_on_sigterm_keeps_a_checkpoint_and_resumes(tiny_dataset, tmp_path):
+    """SIGTERM (a scheduler's stop, `kill`) stops `fit` as Ctrl-C does: the checkpoint is written, no output, one line
+    and exit 143; `--resume` then finishes from it."""
+    import signal
+
+    out = tmp_path / "s.ply"
+    args = [sys.executable, "-m", "proxycodec.cli", "--threads", "1", "fit", str(tiny_dataset), "-o", str(out),
+            "--init-points", "300", "--no-proxies", "--max-width", "24", "--checkpoint-every", "0"]
+    p = subprocess.Popen([*args, "--iters", "1000000"], stderr=subprocess.PIPE, text=True)
+    try:
+        seen = []
+        for line in p.stderr:  # the first progress line: training has started
+            seen.append(line)
+            if line.startswith("it "):
+                break
+        p.send_signal(signal.SIGTERM)
+        _, err = p.communicate(timeout=120)
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.communicate(timeout=30)
+    assert p.returncode == 143, "".join(seen) + err
+    lines = err.splitlines()
+    assert "Traceback" not in err and lines[-1] == "terminated (SIGTERM)", err
+    assert re.fullmatch(r"checkpoint saved at iteration \d+: .*s\.ckpt\.pxc \(continue with --resume\)", lines[-2])
+    saved = int(lines[-2].split()[4].rstrip(":"))
+    assert not out.exists() and (tmp_path / "s.ckpt.pxc").exists()
+    r = subprocess.run([*args, "--iters", str(saved + 2), "--resume"], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert f"resumed from {tmp_path / 's.ckpt.pxc'} at iteration {saved}" in r.stderr
+    assert f"done: {saved + 2} iterations" in r.stderr
+    assert out.exists() and not (tmp_path / "s.ckpt.pxc").exists()
 
 
 def test_cli_fit_bad_dataset(tmp_path):
