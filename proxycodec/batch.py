@@ -6,7 +6,10 @@ command run alone with the same options and threads. Tasks run on Ray when it is
 this process with the machine's cores, or an existing cluster: ``ray_address``), else one after another here.
 
 A failing task is recorded with its one-line error and never stops the others; a task that crashed (an exit status
-other than 0 and the user-error status 2) is retried up to ``retries`` times. A finished task is identified by a key
+other than 0 and the user-error status 2) is retried up to ``retries`` times. A ``fit`` or ``convert`` whose checkpoint
+(``DIR/NAME.ckpt.pxc``) exists continues from it (``--resume``), on a retry as on a re-run of an interrupted batch; a
+checkpoint made with other options is removed and the task starts afresh. Stopping the batch (Ctrl-C, SIGTERM) stops
+the running child with SIGTERM, so a training task writes its checkpoint first. A finished task is identified by a key
 (the command, its options and the hash of the input's bytes, a PLY's weights sidecar included): a re-run with the same
 key whose output still exists is skipped. Each output is written atomically by the command itself.
 """
@@ -24,8 +27,8 @@ from pathlib import Path
 from typing import Callable
 
 from . import __version__
-from .errors import ProxycodecError
-from .fileio import atomic_write
+from .errors import ProxycodecError, Terminated
+from .fileio import atomic_write, checkpoint_path_for
 
 __all__ = ["COMMANDS", "Task", "plan", "run_task", "run_batch", "summary_markdown", "write_summary"]
 
@@ -33,6 +36,12 @@ __all__ = ["COMMANDS", "Task", "plan", "run_task", "run_batch", "summary_markdow
 COMMANDS = {"encode": ".pxc", "convert": ".ply", "fit": ".ply", "eval": "_eval"}
 #: Exit status of a user error (``cli.common.user_errors``): deterministic, never retried.
 USER_ERROR = 2
+#: Commands that checkpoint while training and continue with ``--resume``.
+RESUMABLE = ("fit", "convert")
+#: Seconds a child stopped by the batch has to write its checkpoint before it is killed.
+CHILD_GRACE = 120.0
+#: What a resumed run says when its checkpoint was made with other options (``train``, ``explicit``).
+_STALE_CHECKPOINT = "checkpoint was made with different settings"
 STATE = ".batch"
 
 
@@ -148,15 +157,23 @@ def run_task(task: dict, retries: int = 0) -> dict:
     if t.threads:
         env["PROXYCODEC_THREADS"] = str(t.threads)
         env["NUMBA_NUM_THREADS"] = str(t.threads)
-    cmd = [sys.executable, "-m", "proxycodec.cli", *t.argv]
+    ckpt = checkpoint_path_for(t.output) if t.command in RESUMABLE and "--resume" not in t.argv else None
     attempts = 0
+    resumed = False
     while True:
         attempts += 1
+        resume = ckpt is not None and ckpt.exists()
+        cmd = [sys.executable, "-m", "proxycodec.cli", *t.argv, *(["--resume"] if resume else [])]
         code, stdout, seconds, rss_kb = _run_child(cmd, env, Path(t.log))
+        if resume and code == USER_ERROR and _STALE_CHECKPOINT in Path(t.log).read_text(errors="replace"):
+            ckpt.unlink(missing_ok=True)  # made with other options: start afresh (not counted as an attempt)
+            attempts -= 1
+            continue
+        resumed |= resume
         if code in (0, USER_ERROR) or attempts > retries:
             break
     rec = {"name": t.name, "command": t.command, "input": t.input, "output": t.output, "key": t.key,
-           "seconds": seconds, "attempts": attempts, "log": t.log, "peak_rss_mb": rss_kb / 1024.0,
+           "seconds": seconds, "attempts": attempts, "resumed": resumed, "log": t.log, "peak_rss_mb": rss_kb / 1024.0,
            "host": os.uname().nodename}
     if code != 0:
         lines = Path(t.log).read_text(errors="replace").strip().splitlines() or [f"exit {code}"]
@@ -168,17 +185,41 @@ def run_task(task: dict, retries: int = 0) -> dict:
 
 
 def _run_child(cmd: list[str], env: dict, log: Path) -> tuple[int, str, float, int]:
-    """(exit status, stdout, seconds, peak RSS in KB of that child alone: ``os.wait4``'s own rusage)."""
+    """(exit status, stdout, seconds, peak RSS in KB of that child alone: ``os.wait4``'s own rusage). Interrupted
+    while waiting (Ctrl-C, SIGTERM), it stops the child (``_stop_child``: a training child writes its checkpoint) and
+    raises on."""
     import tempfile
 
     t0 = time.perf_counter()
     with open(log, "w") as err, tempfile.TemporaryFile("w+") as out:
         p = subprocess.Popen(cmd, stdout=out, stderr=err, text=True, env=env)
-        _, status, usage = os.wait4(p.pid, 0)
+        try:
+            _, status, usage = os.wait4(p.pid, 0)
+        except BaseException as e:
+            _stop_child(p, signalled_too=isinstance(e, KeyboardInterrupt) and not isinstance(e, Terminated))
+            raise
         p.returncode = os.waitstatus_to_exitcode(status)
         out.seek(0)
         stdout = out.read()
     return p.returncode, stdout, time.perf_counter() - t0, usage.ru_maxrss
+
+
+def _stop_child(p: subprocess.Popen, signalled_too: bool) -> None:
+    """Stop a task's child when the batch is interrupted. After Ctrl-C (``signalled_too``: the terminal sent SIGINT
+    to the child as well) it gets a few seconds to stop on its own first, so that no second signal lands while it
+    starts writing its checkpoint; then SIGTERM, then SIGKILL after ``CHILD_GRACE`` seconds."""
+    if signalled_too:
+        try:
+            p.wait(timeout=5.0)
+            return
+        except subprocess.TimeoutExpired:
+            pass
+    p.terminate()
+    try:
+        p.wait(timeout=CHILD_GRACE)
+    except subprocess.TimeoutExpired:
+        p.kill()
+        p.wait()
 
 
 def _output_bytes(out: Path) -> int | None:

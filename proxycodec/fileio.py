@@ -1,4 +1,5 @@
-"""Atomic file writing: nothing half-written ever appears under the final name."""
+"""Atomic file writing (nothing half-written ever appears under the final name), and where a run keeps its
+checkpoint."""
 
 from __future__ import annotations
 
@@ -7,6 +8,12 @@ import os
 import tempfile
 from pathlib import Path
 from typing import IO, Iterator
+
+
+def checkpoint_path_for(out: str | os.PathLike) -> Path:
+    """Where a run writing ``out`` keeps its checkpoint: ``OUT.ckpt.pxc`` beside it."""
+    p = Path(out)
+    return p.with_name(p.stem + ".ckpt.pxc")
 
 
 @contextlib.contextmanager

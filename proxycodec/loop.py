@@ -26,6 +26,7 @@ import torch
 
 from .devices import CPU, as_device, upload
 from .errors import ProxycodecError
+from .fileio import checkpoint_path_for
 from .formats.container import write_container
 from .metrics import dssim
 
@@ -385,10 +386,23 @@ def run_until_done(tr: TrainingRun, log: ProgressFn, detail, hist_extra,
             between_steps(now)
 
 
-def checkpoint_path_for(out: str | os.PathLike) -> Path:
-    """Where a run writing ``out`` keeps its checkpoint: ``OUT.ckpt.pxc`` beside it."""
-    p = Path(out)
-    return p.with_name(p.stem + ".ckpt.pxc")
+@contextlib.contextmanager
+def _signals_ignored():
+    """SIGINT and SIGTERM ignored inside the block (main thread only; elsewhere a no-op), then as they were: the
+    checkpoint written on an interrupt is not cut short by the next one (a batch stopping its child with SIGTERM after
+    the terminal's Ctrl-C, a second Ctrl-C)."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    saved = {s: signal.signal(s, signal.SIG_IGN) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for s, handler in saved.items():
+            signal.signal(s, handler)
 
 
 def run_checkpointed(tr: TrainingRun, ckpt: Path | None, checkpoint_every: float, log: ProgressFn, detail,
@@ -416,7 +430,7 @@ def run_checkpointed(tr: TrainingRun, ckpt: Path | None, checkpoint_every: float
         result = finish()
     except BaseException:
         if ckpt is not None:
-            with contextlib.suppress(Exception):
+            with contextlib.suppress(Exception), _signals_ignored():
                 tr.save_checkpoint(ckpt)
                 log(f"checkpoint saved at iteration {tr.iteration}: {ckpt} (continue with --resume)")
         raise

@@ -112,6 +112,57 @@ def test_a_batch_writes_what_each_command_writes_alone_and_a_bad_input_fails_alo
     assert other[0]["status"] == "ok"
 
 
+def test_a_stopped_batch_stops_its_training_child_and_the_next_run_resumes_it(tmp_path):
+    """SIGTERM to the batch reaches its running `fit` (which writes its checkpoint, then exits 143 as the batch does);
+    the next run of the batch continues that fit (--resume), and a checkpoint of other options is started afresh."""
+    import shutil
+    import signal
+    import time
+
+    from conftest import write_corner_dataset
+
+    ds = write_corner_dataset(tmp_path / "ds", 32)
+    out = tmp_path / "d"
+    fit = ["--init-points", "300", "--no-proxies", "--max-width", "24", "--checkpoint-every", "0"]
+    p = subprocess.Popen([sys.executable, "-m", "proxycodec.cli", "batch", "fit", str(ds), "--out", str(out), "--no-ray",
+                          "--cpus-per-task", "1", *fit, "--iters", "1000000"],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    log = out / "logs" / "ds.log"
+    try:
+        deadline = time.monotonic() + 120
+        while not (log.exists() and any(ln.startswith("it ") for ln in log.read_text().splitlines())):
+            assert time.monotonic() < deadline and p.poll() is None, "the fit never started training"
+            time.sleep(0.1)
+        p.send_signal(signal.SIGTERM)
+        _, err = p.communicate(timeout=180)
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.communicate(timeout=30)
+    assert p.returncode == 143 and err.splitlines()[-1] == "terminated (SIGTERM)", err
+    child = log.read_text().splitlines()
+    assert child[-1] == "terminated (SIGTERM)" and child[-2].startswith("checkpoint saved at iteration "), child[-3:]
+    saved = int(child[-2].split()[4].rstrip(":"))
+    ckpt = out / "ds.ckpt.pxc"
+    assert ckpt.exists() and not (out / "ds.ply").exists()
+    shutil.copy(ckpt, tmp_path / "kept.ckpt.pxc")
+
+    recs, _ = run_batch(plan("fit", [str(ds)], out, [*fit, "--iters", str(saved + 2)], threads=1), use_ray=False,
+                        say=lambda s: None)
+    text = log.read_text()
+    assert recs[0]["status"] == "ok" and recs[0]["resumed"] and recs[0]["attempts"] == 1, recs[0]
+    assert f"at iteration {saved}" in text and f"done: {saved + 2} iterations" in text, text
+    assert (out / "ds.ply").exists() and not ckpt.exists()
+
+    shutil.copy(tmp_path / "kept.ckpt.pxc", ckpt)  # a checkpoint of other options (the seed): started afresh
+    recs, _ = run_batch(plan("fit", [str(ds)], out, [*fit, "--iters", "3", "--seed", "5"], threads=1), use_ray=False,
+                        say=lambda s: None)
+    text = log.read_text()
+    assert recs[0]["status"] == "ok" and not recs[0]["resumed"] and recs[0]["attempts"] == 1, recs[0]
+    assert "resumed" not in text and "done: 3 iterations" in text, text
+    assert not ckpt.exists()
+
+
 def test_cli_batch_summarises_and_exits_1_when_a_scene_failed(scenes, tmp_path):
     good, bad = scenes
     r = CliRunner().invoke(cli, ["batch", "encode", good[2], bad, "--out", str(tmp_path / "d"), "--no-ray",
