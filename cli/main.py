@@ -7,14 +7,12 @@ The commands live in sibling modules (plain ``click`` commands); this module mak
 
 from __future__ import annotations
 
-import signal
-
 import click
 
 from .. import __version__
 from ..devices import CHOICES as DEVICE_CHOICES
 from ..devices import ENV as DEVICE_ENV
-from ..errors import Terminated
+from ..processes import stop_on_sigterm
 from ..threads import ENV as THREADS_ENV
 from ..threads import set_threads
 from .batch import batch
@@ -46,12 +44,6 @@ for _command in (sample, render, demo, fit, convert, encode, decode, stats, eval
     cli.add_command(_command)
 
 
-def _on_sigterm(signum, frame) -> None:
-    """The first SIGTERM stops the command as Ctrl-C does (a checkpoint is written); a second one kills at once."""
-    signal.signal(signal.SIGTERM, signal.SIG_DFL)
-    raise Terminated
-
-
 def main() -> None:
-    signal.signal(signal.SIGTERM, _on_sigterm)
+    stop_on_sigterm()
     cli(prog_name="proxycodec")

@@ -27,8 +27,9 @@ from pathlib import Path
 from typing import Callable
 
 from . import __version__
-from .errors import ProxycodecError, Terminated
+from .errors import ProxycodecError
 from .fileio import atomic_write, checkpoint_path_for
+from .processes import stop_child
 
 __all__ = ["COMMANDS", "Task", "plan", "run_task", "run_batch", "summary_markdown", "write_summary"]
 
@@ -38,8 +39,6 @@ COMMANDS = {"encode": ".pxc", "convert": ".ply", "fit": ".ply", "eval": "_eval"}
 USER_ERROR = 2
 #: Commands that checkpoint while training and continue with ``--resume``.
 RESUMABLE = ("fit", "convert")
-#: Seconds a child stopped by the batch has to write its checkpoint before it is killed.
-CHILD_GRACE = 120.0
 #: What a resumed run says when its checkpoint was made with other options (``train``, ``explicit``).
 _STALE_CHECKPOINT = "checkpoint was made with different settings"
 STATE = ".batch"
@@ -186,7 +185,7 @@ def run_task(task: dict, retries: int = 0) -> dict:
 
 def _run_child(cmd: list[str], env: dict, log: Path) -> tuple[int, str, float, int]:
     """(exit status, stdout, seconds, peak RSS in KB of that child alone: ``os.wait4``'s own rusage). Interrupted
-    while waiting (Ctrl-C, SIGTERM), it stops the child (``_stop_child``: a training child writes its checkpoint) and
+    while waiting (Ctrl-C, SIGTERM), it stops the child (``processes.stop_child``: a training child writes its checkpoint) and
     raises on."""
     import tempfile
 
@@ -196,30 +195,12 @@ def _run_child(cmd: list[str], env: dict, log: Path) -> tuple[int, str, float, i
         try:
             _, status, usage = os.wait4(p.pid, 0)
         except BaseException as e:
-            _stop_child(p, signalled_too=isinstance(e, KeyboardInterrupt) and not isinstance(e, Terminated))
+            stop_child(p, e)
             raise
         p.returncode = os.waitstatus_to_exitcode(status)
         out.seek(0)
         stdout = out.read()
     return p.returncode, stdout, time.perf_counter() - t0, usage.ru_maxrss
-
-
-def _stop_child(p: subprocess.Popen, signalled_too: bool) -> None:
-    """Stop a task's child when the batch is interrupted. After Ctrl-C (``signalled_too``: the terminal sent SIGINT
-    to the child as well) it gets a few seconds to stop on its own first, so that no second signal lands while it
-    starts writing its checkpoint; then SIGTERM, then SIGKILL after ``CHILD_GRACE`` seconds."""
-    if signalled_too:
-        try:
-            p.wait(timeout=5.0)
-            return
-        except subprocess.TimeoutExpired:
-            pass
-    p.terminate()
-    try:
-        p.wait(timeout=CHILD_GRACE)
-    except subprocess.TimeoutExpired:
-        p.kill()
-        p.wait()
 
 
 def _output_bytes(out: Path) -> int | None:

@@ -29,6 +29,7 @@ from .errors import ProxycodecError
 from .fileio import checkpoint_path_for
 from .formats.container import write_container
 from .metrics import dssim
+from .processes import signals_ignored
 
 __all__ = [
     "ProgressFn", "TargetImages", "TrainingRun", "check_run_length", "checkpoint_path_for", "fmt_time",
@@ -386,25 +387,6 @@ def run_until_done(tr: TrainingRun, log: ProgressFn, detail, hist_extra,
             between_steps(now)
 
 
-@contextlib.contextmanager
-def _signals_ignored():
-    """SIGINT and SIGTERM ignored inside the block (main thread only; elsewhere a no-op), then as they were: the
-    checkpoint written on an interrupt is not cut short by the next one (a batch stopping its child with SIGTERM after
-    the terminal's Ctrl-C, a second Ctrl-C)."""
-    import signal
-    import threading
-
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    saved = {s: signal.signal(s, signal.SIG_IGN) for s in (signal.SIGINT, signal.SIGTERM)}
-    try:
-        yield
-    finally:
-        for s, handler in saved.items():
-            signal.signal(s, handler)
-
-
 def run_checkpointed(tr: TrainingRun, ckpt: Path | None, checkpoint_every: float, log: ProgressFn, detail,
                      hist_extra, finish: Callable[[], T], *, keep_checkpoint: bool = False,
                      stop_after: int | None = None) -> T:
@@ -430,7 +412,7 @@ def run_checkpointed(tr: TrainingRun, ckpt: Path | None, checkpoint_every: float
         result = finish()
     except BaseException:
         if ckpt is not None:
-            with contextlib.suppress(Exception), _signals_ignored():
+            with contextlib.suppress(Exception), signals_ignored():
                 tr.save_checkpoint(ckpt)
                 log(f"checkpoint saved at iteration {tr.iteration}: {ckpt} (continue with --resume)")
         raise

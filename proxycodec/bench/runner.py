@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from ..fileio import atomic_write
+from ..processes import stop_child, stop_on_sigterm
 from ..threads import set_threads
 from .steps import load_avg, run_worker
 
@@ -224,16 +225,21 @@ class Runner:
 def spawn_step(logf: str, kind: str, args: dict, timeout: float) -> dict:
     """One step in a fresh ``python -m proxycodec.bench --worker`` process (its stderr in ``logf``): its record."""
     cmd = [sys.executable, "-m", "proxycodec.bench", "--worker", kind, json.dumps(args)]
-    with open(logf, "w") as err:
+    with open(logf, "w") as err, subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=err, text=True) as p:
         try:
-            r = subprocess.run(cmd, stdout=subprocess.PIPE, stderr=err, text=True, timeout=timeout, check=False)
+            stdout, _ = p.communicate(timeout=timeout)
         except subprocess.TimeoutExpired:
+            p.kill()
+            p.communicate()
             return {"status": "error", "error": f"timeout after {timeout:.0f} s (log: {logf})"}
-    if r.returncode != 0:
+        except BaseException as e:  # Ctrl-C, SIGTERM: the worker stops too (a fit step writes its checkpoint)
+            stop_child(p, e)
+            raise
+    if p.returncode != 0:
         tail = Path(logf).read_text(errors="replace").strip().splitlines()[-1:] or ["?"]
-        return {"status": "error", "error": f"exit {r.returncode}: {tail[0][-300:]} (log: {logf})"}
+        return {"status": "error", "error": f"exit {p.returncode}: {tail[0][-300:]} (log: {logf})"}
     try:
-        return {"status": "ok", "result": json.loads(r.stdout.strip().splitlines()[-1]), "rss_scope": "own process"}
+        return {"status": "ok", "result": json.loads(stdout.strip().splitlines()[-1]), "rss_scope": "own process"}
     except (ValueError, IndexError):
         return {"status": "error", "error": f"no result from the worker (log: {logf})"}
 
@@ -303,6 +309,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if len(argv) == 3 and argv[0] == "--worker":
         set_threads()  # the count the parent chose reaches this process through the environment
+        stop_on_sigterm()  # stopped by its parent (``spawn_step``): a fit step writes its checkpoint
         print(json.dumps(run_worker(argv[1], json.loads(argv[2])), default=_json_default))
         return 0
     print("usage: python -m proxycodec.bench --worker KIND JSON (internal; see `proxycodec bench`)", file=sys.stderr)

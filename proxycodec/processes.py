@@ -1,0 +1,69 @@
+"""Signals and child processes: SIGTERM as an interrupt, and stopping a child so that it keeps its work.
+
+A scheduler, ``kill`` or ``docker stop`` ends a process with SIGTERM. ``stop_on_sigterm`` turns the first one into
+``errors.Terminated`` (a ``KeyboardInterrupt``), so whatever keeps work on Ctrl-C keeps it then too: a training run
+writes its checkpoint (``loop.run_checkpointed``, under ``signals_ignored``), a file being written keeps its former
+content (``fileio.atomic_write``). ``stop_child`` is how a parent (``batch``, the benchmark runner) hands an interrupt
+on.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import signal
+import subprocess
+import threading
+
+from .errors import Terminated
+
+#: Seconds a child stopped by its parent has to write its checkpoint before it is killed.
+CHILD_GRACE = 120.0
+#: Seconds a child that the terminal's Ctrl-C reached too gets to stop on its own before it is sent SIGTERM.
+CTRL_C_GRACE = 5.0
+
+
+def _on_sigterm(signum, frame) -> None:
+    """The first SIGTERM stops the process as Ctrl-C does; a second one kills it at once."""
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    raise Terminated
+
+
+def stop_on_sigterm() -> None:
+    """From now on the first SIGTERM raises ``Terminated`` in the main thread (call it from the main thread)."""
+    signal.signal(signal.SIGTERM, _on_sigterm)
+
+
+@contextlib.contextmanager
+def signals_ignored():
+    """SIGINT and SIGTERM ignored inside the block (main thread only; elsewhere a no-op), then as they were: the
+    checkpoint written on an interrupt is not cut short by the next one (a parent's SIGTERM after the terminal's
+    Ctrl-C, a second Ctrl-C)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    saved = {s: signal.signal(s, signal.SIG_IGN) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for s, handler in saved.items():
+            signal.signal(s, handler)
+
+
+def stop_child(p: subprocess.Popen, interrupt: BaseException) -> None:
+    """Stop child ``p`` because this process got ``interrupt``. After Ctrl-C (a plain ``KeyboardInterrupt``: the
+    terminal sent SIGINT to the child as well) it first gets ``CTRL_C_GRACE`` seconds to stop on its own, so that no
+    second signal lands while it starts writing its checkpoint; then SIGTERM, and SIGKILL after ``CHILD_GRACE``
+    seconds."""
+    if isinstance(interrupt, KeyboardInterrupt) and not isinstance(interrupt, Terminated):
+        try:
+            p.wait(timeout=CTRL_C_GRACE)
+            return
+        except subprocess.TimeoutExpired:
+            pass
+    if p.poll() is None:
+        p.terminate()
+    try:
+        p.wait(timeout=CHILD_GRACE)
+    except subprocess.TimeoutExpired:
+        p.kill()
+        p.wait()
