@@ -12,7 +12,8 @@ from pathlib import Path
 
 import click
 
-from ..errors import ProxycodecError, Terminated
+from ..errors import ProxycodecError
+from ..processes import terminated
 
 
 def user_errors(fn):
@@ -28,10 +29,10 @@ def user_errors(fn):
         except (FileNotFoundError, IsADirectoryError, PermissionError) as e:
             click.echo(f"error: {e.filename}: {e.strerror}", err=True)
             sys.exit(2)
-        except Terminated:
-            click.echo("terminated (SIGTERM)", err=True)
-            sys.exit(143)
-        except KeyboardInterrupt:
+        except KeyboardInterrupt as e:
+            if terminated(e):
+                click.echo("terminated (SIGTERM)", err=True)
+                sys.exit(143)
             click.echo("interrupted", err=True)
             sys.exit(130)
 

@@ -29,7 +29,7 @@ from typing import Callable
 from . import __version__
 from .errors import ProxycodecError
 from .fileio import atomic_write, checkpoint_path_for
-from .processes import stop_child
+from .processes import CHILD_GRACE, CTRL_C_GRACE, sigterm_kept, stop_child
 
 __all__ = ["COMMANDS", "Task", "plan", "run_task", "run_batch", "summary_markdown", "write_summary"]
 
@@ -193,7 +193,11 @@ def _run_child(cmd: list[str], env: dict, log: Path) -> tuple[int, str, float, i
     with open(log, "w") as err, tempfile.TemporaryFile("w+") as out:
         p = subprocess.Popen(cmd, stdout=out, stderr=err, text=True, env=env)
         try:
-            _, status, usage = os.wait4(p.pid, 0)
+            while True:  # polled, not one blocking wait: Ray cancels a task by raising in its Python thread
+                pid, status, usage = os.wait4(p.pid, os.WNOHANG)
+                if pid:
+                    break
+                time.sleep(0.1)
         except BaseException as e:
             stop_child(p, e)
             raise
@@ -297,10 +301,11 @@ def run_batch(tasks: list[Task], *, use_ray: bool | None = None, ray_address: st
     elif todo:
         started_here = not ray.is_initialized()
         if started_here:
-            if ray_address:
-                ray.init(address=ray_address, log_to_driver=False)
-            else:
-                ray.init(num_cpus=os.cpu_count(), include_dashboard=False, log_to_driver=False)
+            with sigterm_kept():  # Ray's core installs its own handler, which aborts the process
+                if ray_address:
+                    ray.init(address=ray_address, log_to_driver=False)
+                else:
+                    ray.init(num_cpus=os.cpu_count(), include_dashboard=False, log_to_driver=False)
         resources = ray.cluster_resources()
         how.update(engine="ray", address=ray_address or "local", nodes=len(ray.nodes()),
                    cluster_cpus=resources.get("CPU"), cluster_gpus=resources.get("GPU", 0.0),
@@ -321,6 +326,11 @@ def run_batch(tasks: list[Task], *, use_ray: bool | None = None, ray_address: st
                 _record(t, rec)
                 records[t.name] = rec
                 prog.update(rec)
+        except BaseException:  # Ctrl-C, SIGTERM: the running tasks stop their children (who keep a checkpoint)
+            for ref in pending:
+                ray.cancel(ref)  # a KeyboardInterrupt in the task: ``_run_child`` hands it on (``stop_child``)
+            ray.wait(list(pending), num_returns=len(pending), timeout=CHILD_GRACE + CTRL_C_GRACE + 10.0)
+            raise
         finally:
             if started_here:
                 ray.shutdown()

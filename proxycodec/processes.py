@@ -22,15 +22,41 @@ CHILD_GRACE = 120.0
 CTRL_C_GRACE = 5.0
 
 
+_sigterm_received = False
+
+
 def _on_sigterm(signum, frame) -> None:
     """The first SIGTERM stops the process as Ctrl-C does; a second one kills it at once."""
+    global _sigterm_received
+    _sigterm_received = True
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
     raise Terminated
+
+
+def terminated(interrupt: BaseException) -> bool:
+    """Whether ``interrupt`` stands for SIGTERM: ``Terminated``, or any ``KeyboardInterrupt`` once SIGTERM came (a
+    library may catch the first and raise a plain one: Ray's ``wait`` does)."""
+    return isinstance(interrupt, Terminated) or (isinstance(interrupt, KeyboardInterrupt) and _sigterm_received)
 
 
 def stop_on_sigterm() -> None:
     """From now on the first SIGTERM raises ``Terminated`` in the main thread (call it from the main thread)."""
     signal.signal(signal.SIGTERM, _on_sigterm)
+
+
+@contextlib.contextmanager
+def sigterm_kept():
+    """SIGTERM's handler as it was before the block, whatever the block installs (Ray's ``init`` installs one that
+    aborts the process). Main thread only; elsewhere a no-op."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    saved = signal.getsignal(signal.SIGTERM)
+    try:
+        yield
+    finally:
+        if saved is not None:
+            signal.signal(signal.SIGTERM, saved)
 
 
 @contextlib.contextmanager
@@ -54,7 +80,7 @@ def stop_child(p: subprocess.Popen, interrupt: BaseException) -> None:
     terminal sent SIGINT to the child as well) it first gets ``CTRL_C_GRACE`` seconds to stop on its own, so that no
     second signal lands while it starts writing its checkpoint; then SIGTERM, and SIGKILL after ``CHILD_GRACE``
     seconds."""
-    if isinstance(interrupt, KeyboardInterrupt) and not isinstance(interrupt, Terminated):
+    if isinstance(interrupt, KeyboardInterrupt) and not terminated(interrupt):
         try:
             p.wait(timeout=CTRL_C_GRACE)
             return

@@ -112,10 +112,14 @@ def test_a_batch_writes_what_each_command_writes_alone_and_a_bad_input_fails_alo
     assert other[0]["status"] == "ok"
 
 
-def test_a_stopped_batch_stops_its_training_child_and_the_next_run_resumes_it(tmp_path):
-    """SIGTERM to the batch reaches its running `fit` (which writes its checkpoint, then exits 143 as the batch does);
-    the next run of the batch continues that fit (--resume), and a checkpoint of other options is started afresh."""
-    import shutil
+#: fit options small enough for a test
+FIT = ["--init-points", "300", "--no-proxies", "--max-width", "24", "--checkpoint-every", "0"]
+
+
+def _stop_a_batch_fit(tmp_path, *engine: str):
+    """Start `batch fit` on a tiny dataset (``engine``: --no-ray or --ray), SIGTERM the batch once its fit trains:
+    (dataset, out dir, the task's log, the iteration its checkpoint holds). The batch and its fit exit 143, the fit
+    after writing its checkpoint."""
     import signal
     import time
 
@@ -123,28 +127,38 @@ def test_a_stopped_batch_stops_its_training_child_and_the_next_run_resumes_it(tm
 
     ds = write_corner_dataset(tmp_path / "ds", 32)
     out = tmp_path / "d"
-    fit = ["--init-points", "300", "--no-proxies", "--max-width", "24", "--checkpoint-every", "0"]
-    p = subprocess.Popen([sys.executable, "-m", "proxycodec.cli", "batch", "fit", str(ds), "--out", str(out), "--no-ray",
-                          "--cpus-per-task", "1", *fit, "--iters", "1000000"],
+    p = subprocess.Popen([sys.executable, "-m", "proxycodec.cli", "batch", "fit", str(ds), "--out", str(out), *engine,
+                          "--cpus-per-task", "1", *FIT, "--iters", "1000000"],
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     log = out / "logs" / "ds.log"
     try:
-        deadline = time.monotonic() + 120
+        deadline = time.monotonic() + 240
         while not (log.exists() and any(ln.startswith("it ") for ln in log.read_text().splitlines())):
             assert time.monotonic() < deadline and p.poll() is None, "the fit never started training"
             time.sleep(0.1)
         p.send_signal(signal.SIGTERM)
-        _, err = p.communicate(timeout=180)
+        _, err = p.communicate(timeout=240)
     finally:
         if p.poll() is None:
             p.kill()
             p.communicate(timeout=30)
     assert p.returncode == 143 and err.splitlines()[-1] == "terminated (SIGTERM)", err
     child = log.read_text().splitlines()
-    assert child[-1] == "terminated (SIGTERM)" and child[-2].startswith("checkpoint saved at iteration "), child[-3:]
-    saved = int(child[-2].split()[4].rstrip(":"))
+    assert child[-1] in ("terminated (SIGTERM)", "interrupted") and \
+        child[-2].startswith("checkpoint saved at iteration "), child[-3:]
+    assert (out / "ds.ckpt.pxc").exists() and not (out / "ds.ply").exists()
+    return ds, out, log, int(child[-2].split()[4].rstrip(":"))
+
+
+def test_a_stopped_batch_stops_its_training_child_and_the_next_run_resumes_it(tmp_path):
+    """SIGTERM to the batch reaches its running `fit` (which writes its checkpoint, then exits 143 as the batch does);
+    the next run of the batch continues that fit (--resume), and a checkpoint of other options is started afresh."""
+    import shutil
+
+    ds, out, log, saved = _stop_a_batch_fit(tmp_path, "--no-ray")
+    assert log.read_text().splitlines()[-1] == "terminated (SIGTERM)"
     ckpt = out / "ds.ckpt.pxc"
-    assert ckpt.exists() and not (out / "ds.ply").exists()
+    fit = FIT
     shutil.copy(ckpt, tmp_path / "kept.ckpt.pxc")
 
     recs, _ = run_batch(plan("fit", [str(ds)], out, [*fit, "--iters", str(saved + 2)], threads=1), use_ray=False,
@@ -198,6 +212,13 @@ def test_on_a_local_ray_the_outputs_are_those_of_the_sequential_run(ray, scenes,
     assert how["engine"] == "ray" and how["cluster_cpus"] == 2
     assert [r["status"] for r in records] == ["ok", "ok", "ok", "error"]
     assert _outputs(records) == _outputs(seq)
+
+
+def test_a_stopped_batch_on_ray_stops_its_training_child(ray, tmp_path):
+    """On Ray too: SIGTERM to the batch cancels its task, which stops its `fit` child so that it writes its checkpoint
+    (Ray raises KeyboardInterrupt in the task, whose wait for its child is polled so that it can, and the task sends
+    the child SIGTERM 5 s on)."""
+    _stop_a_batch_fit(tmp_path, "--ray")
 
 
 def test_a_two_node_cluster_runs_the_same_batch(ray, scenes, tmp_path):

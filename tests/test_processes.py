@@ -12,7 +12,7 @@ import time
 import pytest
 
 from proxycodec.errors import Terminated
-from proxycodec.processes import signals_ignored, stop_child, stop_on_sigterm
+from proxycodec.processes import signals_ignored, sigterm_kept, stop_child, stop_on_sigterm, terminated
 
 #: A child that says "ready", then sleeps; on SIGTERM it writes "term" to the file given and exits 143.
 CHILD = """
@@ -33,23 +33,32 @@ def _child(tmp_path, sleep: float) -> subprocess.Popen:
     return p
 
 
-@pytest.fixture()
-def sigterm_restored():
+@pytest.fixture(autouse=True)
+def sigterm_restored(monkeypatch):
+    """Each test starts with no SIGTERM seen and leaves the process's handler as it found it."""
+    import proxycodec.processes as processes
+
+    monkeypatch.setattr(processes, "_sigterm_received", False)
     saved = signal.getsignal(signal.SIGTERM)
     yield
     signal.signal(signal.SIGTERM, saved)
 
 
-def test_the_first_sigterm_raises_terminated_and_the_second_is_the_default(sigterm_restored):
+def test_the_first_sigterm_raises_terminated_and_the_second_is_the_default():
     stop_on_sigterm()
     with pytest.raises(Terminated) as e:
         os.kill(os.getpid(), signal.SIGTERM)
         time.sleep(5)  # the handler runs at the next bytecode; never reached
     assert isinstance(e.value, KeyboardInterrupt)
     assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL
+    assert terminated(KeyboardInterrupt())  # what a library re-raises after catching it stands for SIGTERM too
 
 
-def test_signals_are_ignored_inside_the_block_then_handled_as_before(sigterm_restored):
+def test_a_plain_keyboard_interrupt_is_ctrl_c_until_sigterm_came():
+    assert not terminated(KeyboardInterrupt()) and terminated(Terminated()) and not terminated(ValueError())
+
+
+def test_signals_are_ignored_inside_the_block_then_handled_as_before():
     stop_on_sigterm()
     before = signal.getsignal(signal.SIGINT)
     with signals_ignored():
@@ -94,3 +103,11 @@ def test_a_child_that_ignores_sigterm_is_killed_after_the_grace(tmp_path, monkey
     assert p.stdout.readline() == "ready\n"
     stop_child(p, Terminated())
     assert p.returncode == -signal.SIGKILL
+
+
+def test_sigterm_kept_puts_back_the_handler_a_library_replaced():
+    stop_on_sigterm()
+    ours = signal.getsignal(signal.SIGTERM)
+    with sigterm_kept():
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)  # what ray.init does, with a handler of its own
+    assert signal.getsignal(signal.SIGTERM) is ours
