@@ -176,3 +176,27 @@ def write_corner_dataset(root: Path, size: int = 32) -> Path:
     cams = orbit_cameras((0.55, -0.45, 0.2), 1.8, 10, elevation_deg=35.0, fov_x_deg=45.0, width=size, height=size)
     splits = {"train": [c for i, c in enumerate(cams) if i % 5 != 0], "test": [c for i, c in enumerate(cams) if i % 5 == 0]}
     return write_blender(root, splits, lambda cam: corner.render(cam, 1.0).image)
+
+
+def signal_when_ready(p, sig, wait_ready, timeout: float = 120.0) -> tuple[str | None, str | None]:
+    """Send ``sig`` to the ``subprocess.Popen`` ``p`` once ``wait_ready()`` has returned (it reads the child's
+    output until the moment to signal), then (stdout, stderr) as the child exits. On any failure the child is killed,
+    so a test never leaves one running."""
+    try:
+        wait_ready()
+        p.send_signal(sig)
+        return p.communicate(timeout=timeout)
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.communicate(timeout=30)
+
+
+def read_until(stream, starts: str) -> list[str]:
+    """The lines read from ``stream`` up to and including the first that starts with ``starts``."""
+    seen = []
+    for line in stream:
+        seen.append(line)
+        if line.startswith(starts):
+            break
+    return seen

@@ -123,7 +123,7 @@ def _stop_a_batch_fit(tmp_path, *engine: str):
     import signal
     import time
 
-    from conftest import write_corner_dataset
+    from conftest import signal_when_ready, write_corner_dataset
 
     ds = write_corner_dataset(tmp_path / "ds", 32)
     out = tmp_path / "d"
@@ -131,17 +131,14 @@ def _stop_a_batch_fit(tmp_path, *engine: str):
                           "--cpus-per-task", "1", *FIT, "--iters", "1000000"],
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     log = out / "logs" / "ds.log"
-    try:
+
+    def training():
         deadline = time.monotonic() + 240
         while not (log.exists() and any(ln.startswith("it ") for ln in log.read_text().splitlines())):
             assert time.monotonic() < deadline and p.poll() is None, "the fit never started training"
             time.sleep(0.1)
-        p.send_signal(signal.SIGTERM)
-        _, err = p.communicate(timeout=240)
-    finally:
-        if p.poll() is None:
-            p.kill()
-            p.communicate(timeout=30)
+
+    _, err = signal_when_ready(p, signal.SIGTERM, training, timeout=240)
     assert p.returncode == 143 and err.splitlines()[-1] == "terminated (SIGTERM)", err
     child = log.read_text().splitlines()
     assert child[-1] in ("terminated (SIGTERM)", "interrupted") and \

@@ -27,6 +27,7 @@ import pytest
 import torch
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from conftest import read_until, signal_when_ready
 from PIL import Image
 from proxycodec import lite
 from proxycodec.formats import colmap, container
@@ -698,15 +699,7 @@ def _interrupt(args: list[str], cwd: Path) -> subprocess.CompletedProcess:
     p = subprocess.Popen([sys.executable, "-c", _SLOW_WRITER, *args], cwd=cwd, stdout=subprocess.PIPE,
                          stderr=subprocess.PIPE, text=True,
                          preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
-    try:
-        for line in p.stdout:
-            if "WRITING" in line:
-                break
-        p.send_signal(signal.SIGINT)
-        out, err = p.communicate(timeout=60)
-    finally:
-        if p.poll() is None:
-            p.kill()
+    out, err = signal_when_ready(p, signal.SIGINT, lambda: read_until(p.stdout, "WRITING"), timeout=60)
     return subprocess.CompletedProcess(p.args, p.returncode, out, err)
 
 

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from conftest import write_corner_dataset
+from conftest import read_until, signal_when_ready, write_corner_dataset
 
 from proxycodec.errors import ProxycodecError
 from proxycodec.metrics import dssim, mse_to_psnr, psnr, ssim, ssim_torch
@@ -669,18 +669,8 @@ def test_cli_fit_on_sigterm_keeps_a_checkpoint_and_resumes(tiny_dataset, tmp_pat
     args = [sys.executable, "-m", "proxycodec.cli", "--threads", "1", "fit", str(tiny_dataset), "-o", str(out),
             "--init-points", "300", "--no-proxies", "--max-width", "24", "--checkpoint-every", "0"]
     p = subprocess.Popen([*args, "--iters", "1000000"], stderr=subprocess.PIPE, text=True)
-    try:
-        seen = []
-        for line in p.stderr:  # the first progress line: training has started
-            seen.append(line)
-            if line.startswith("it "):
-                break
-        p.send_signal(signal.SIGTERM)
-        _, err = p.communicate(timeout=120)
-    finally:
-        if p.poll() is None:
-            p.kill()
-            p.communicate(timeout=30)
+    seen = []  # up to the first progress line: training has started
+    _, err = signal_when_ready(p, signal.SIGTERM, lambda: seen.extend(read_until(p.stderr, "it ")))
     assert p.returncode == 143, "".join(seen) + err
     lines = err.splitlines()
     assert "Traceback" not in err and lines[-1] == "terminated (SIGTERM)", err
