@@ -185,8 +185,8 @@ def run_task(task: dict, retries: int = 0) -> dict:
 
 def _run_child(cmd: list[str], env: dict, log: Path) -> tuple[int, str, float, int]:
     """(exit status, stdout, seconds, peak RSS in KB of that child alone: ``os.wait4``'s own rusage). Interrupted
-    while waiting (Ctrl-C, SIGTERM), it stops the child (``processes.stop_child``: a training child writes its checkpoint) and
-    raises on."""
+    while waiting (Ctrl-C, SIGTERM, Ray's cancel), it stops the child (``processes.stop_child``: a training child
+    writes its checkpoint) and raises on."""
     import tempfile
 
     t0 = time.perf_counter()

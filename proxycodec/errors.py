@@ -19,6 +19,7 @@ class ProxycodecError(ValueError):
 
 
 class Terminated(KeyboardInterrupt):
-    """SIGTERM (a scheduler's stop, ``kill``, ``docker stop``), raised in the main thread by the command line's
-    handler (``cli.main.main``). It is a ``KeyboardInterrupt``, so everything that keeps work on Ctrl-C keeps it here
-    too: a training run writes its checkpoint, a write in progress leaves the old file and no temporary."""
+    """SIGTERM (a scheduler's stop, ``kill``, ``docker stop``), raised in the main thread by the handler the command
+    line installs (``processes.stop_on_sigterm``). It is a ``KeyboardInterrupt``, so everything that keeps work on
+    Ctrl-C keeps it here too: a training run writes its checkpoint, a write in progress leaves the old file and no
+    temporary."""
