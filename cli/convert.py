@@ -35,7 +35,7 @@ def convert_options(fn):
 
 
 def make_config(iters, time_budget, seed, voxel_size, views, view_size, background, max_width, max_anchors=None,
-                target_size=None, lambda_rate=None):
+                target_size=None, lambda_rate=None, checkpoint_every=None):
     from ..convert import ConvertConfig, replace_fit
 
     cfg = ConvertConfig(voxel_size=voxel_size, views=views, view_size=view_size, background=background,
@@ -45,6 +45,8 @@ def make_config(iters, time_budget, seed, voxel_size, views, view_size, backgrou
         run.update(iters=iters, time_budget=time_budget)
     if lambda_rate is not None:
         run["lambda_rate"] = lambda_rate
+    if checkpoint_every is not None:
+        run["checkpoint_every"] = checkpoint_every
     return replace_fit(cfg, **run)
 
 
@@ -63,10 +65,13 @@ def make_config(iters, time_budget, seed, voxel_size, views, view_size, backgrou
                      "PLY, 0 gave a 54% larger container for +0.49 dB against the source (benchmarks/README.md, "
                      "'The rate term in conversion').")
 @click.option("--resume", is_flag=True, help="Continue from OUT's checkpoint (OUT.ckpt.pxc).")
+@convert_option("--checkpoint-every", field="fit", convert=lambda fit: fit.checkpoint_every,
+                type=click.FloatRange(0.0), show_default=True,
+                help="Seconds of training between checkpoints (0: only when stopped: Ctrl-C, SIGTERM, an error).")
 @click.option("--json", "as_json", is_flag=True, help="Print the conversion report as JSON on stdout.")
 @user_errors
 def convert(ply, out, iters, time_budget, seed, voxel_size, max_anchors, target_size, views, view_size, background,
-            max_width, lambda_rate, resume, as_json) -> None:
+            max_width, lambda_rate, resume, checkpoint_every, as_json) -> None:
     """Turn an INRIA 3DGS PLY (SH degree 0..3; the reference trainer's, splatfacto's, an app's export) into a
     resolution-aware anchor scene, trained against the PLY's own renders: no images needed. Writes OUT (anchor PLY)
     and OUT.weights.pxc (MLPs, proxies and their stage-2 predictor: `encode OUT` uses them as they are); OUT.ckpt.pxc
@@ -78,7 +83,7 @@ def convert(ply, out, iters, time_budget, seed, voxel_size, max_anchors, target_
     from ..convert import convert as run
 
     cfg = make_config(iters, time_budget, seed, voxel_size, views, view_size, background, max_width, max_anchors,
-                      target_size, lambda_rate)
+                      target_size, lambda_rate, checkpoint_every)
     r = run(ply, out, cfg, resume=resume, log=lambda m: click.echo(m, err=True), device=command_device())
     if as_json:
         click.echo(json.dumps(r.to_json(), indent=2))

@@ -421,6 +421,10 @@ def test_convert_s_lambda_rate_reaches_the_conversion_s_fit(tmp_path, monkeypatc
     res = CliRunner().invoke(cli, ["convert", str(tmp_path / "g.ply"), "-o", str(tmp_path / "a.ply"), *given])
     assert res.exit_code == 2 and "stop here" in res.output
     assert seen[0].lambda_rate == expected and seen[0].iters == ConvertConfig().fit.iters
+    assert seen[0].checkpoint_every == ConvertConfig().fit.checkpoint_every
+    res = CliRunner().invoke(cli, ["convert", str(tmp_path / "g.ply"), "-o", str(tmp_path / "a.ply"), *given,
+                                   "--checkpoint-every", "30"])
+    assert res.exit_code == 2 and seen[1].checkpoint_every == 30.0 and seen[1].lambda_rate == expected
 
 
 def test_convert_s_lambda_rate_refuses_a_negative_weight(tmp_path):
