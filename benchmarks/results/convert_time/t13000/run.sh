@@ -1,5 +1,6 @@
 #!/bin/bash
-# bonsai's 600-s 3DGS PLY converted with a 16,000-s training budget (BUDGET overrides; 13,000 from the 2026-11-29 13:3x resume on), resumable across sessions. The checkpoint,
+# bonsai's 600-s 3DGS PLY converted with a 16,000-s training budget (BUDGET overrides it; 13,000 from the
+# 2026-11-29 13:27 UTC resume on), resumable: the checkpoint,
 # converted_anchors.ckpt.pxc, is written every 300 s of training. To pause: `kill -TERM` the python process right
 # after the checkpoint's mtime changes (a background job ignores SIGINT, so no checkpoint is written on SIGINT here);
 # at most 300 s of training are lost otherwise. Done when converted_anchors.ply exists and the checkpoint is gone.
