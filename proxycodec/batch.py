@@ -29,7 +29,7 @@ from typing import Callable
 from . import __version__
 from .errors import ProxycodecError
 from .fileio import atomic_write, checkpoint_path_for
-from .processes import CHILD_GRACE, CTRL_C_GRACE, sigterm_kept, stop_child
+from .processes import CHILD_GRACE, CTRL_C_GRACE, sigint_raises, sigterm_kept, stop_child
 
 __all__ = ["COMMANDS", "Task", "plan", "run_task", "run_batch", "summary_markdown", "write_summary"]
 
@@ -183,6 +183,12 @@ def run_task(task: dict, retries: int = 0) -> dict:
     return rec
 
 
+def _ray_task(task: dict, retries: int = 0) -> dict:
+    """``run_task`` as a Ray task, cancellable wherever its worker was started (``processes.sigint_raises``)."""
+    with sigint_raises():
+        return run_task(task, retries)
+
+
 def _run_child(cmd: list[str], env: dict, log: Path) -> tuple[int, str, float, int]:
     """(exit status, stdout, seconds, peak RSS in KB of that child alone: ``os.wait4``'s own rusage). Interrupted
     while waiting (Ctrl-C, SIGTERM, Ray's cancel), it stops the child (``processes.stop_child``: a training child
@@ -310,7 +316,7 @@ def run_batch(tasks: list[Task], *, use_ray: bool | None = None, ray_address: st
         how.update(engine="ray", address=ray_address or "local", nodes=len(ray.nodes()),
                    cluster_cpus=resources.get("CPU"), cluster_gpus=resources.get("GPU", 0.0),
                    cpus_per_task=cpus_per_task, gpus_per_task=gpus_per_task)
-        remote = ray.remote(num_cpus=cpus_per_task, num_gpus=gpus_per_task, max_retries=retries)(run_task)
+        remote = ray.remote(num_cpus=cpus_per_task, num_gpus=gpus_per_task, max_retries=retries)(_ray_task)
         # a task's threads: its CPUs on Ray unless given (Ray runs as many tasks at once as the CPUs allow)
         threads = max(1, int(cpus_per_task))
         pending = {remote.remote({**t.to_json(), "threads": t.threads or threads}, retries): t for t in todo}

@@ -75,6 +75,21 @@ def signals_ignored():
             signal.signal(s, handler)
 
 
+@contextlib.contextmanager
+def sigint_raises():
+    """SIGINT raises ``KeyboardInterrupt`` inside the block even in a process that started with it ignored (any child
+    of a background job): Ray cancels a running task by simulating SIGINT in its worker's main thread, which does
+    nothing where SIGINT is ignored. Main thread only; elsewhere a no-op."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    saved = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, saved)
+
+
 def stop_child(p: subprocess.Popen, interrupt: BaseException) -> None:
     """Stop child ``p`` because this process got ``interrupt``. After Ctrl-C (a plain ``KeyboardInterrupt``: the
     terminal sent SIGINT to the child as well) it first gets ``CTRL_C_GRACE`` seconds to stop on its own, so that no

@@ -127,9 +127,11 @@ def _stop_a_batch_fit(tmp_path, *engine: str):
 
     ds = write_corner_dataset(tmp_path / "ds", 32)
     out = tmp_path / "d"
+    # started with SIGINT ignored, as every child of a background job is (`.ci/run &`): Ray's cancel must work there too
     p = subprocess.Popen([sys.executable, "-m", "proxycodec.cli", "batch", "fit", str(ds), "--out", str(out), *engine,
                           "--cpus-per-task", "1", *FIT, "--iters", "1000000"],
-                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
     log = out / "logs" / "ds.log"
 
     def training():

@@ -111,3 +111,16 @@ def test_sigterm_kept_puts_back_the_handler_a_library_replaced():
     with sigterm_kept():
         signal.signal(signal.SIGTERM, signal.SIG_DFL)  # what ray.init does, with a handler of its own
     assert signal.getsignal(signal.SIGTERM) is ours
+
+
+def test_sigint_raises_inside_the_block_even_where_it_was_ignored():
+    from proxycodec.processes import sigint_raises
+
+    before = signal.signal(signal.SIGINT, signal.SIG_IGN)  # a background job's child
+    try:
+        with pytest.raises(KeyboardInterrupt), sigint_raises():
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(5)  # the handler runs at the next bytecode; never reached
+        assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+    finally:
+        signal.signal(signal.SIGINT, before)
