@@ -45,49 +45,41 @@ def stop_on_sigterm() -> None:
 
 
 @contextlib.contextmanager
-def sigterm_kept():
-    """SIGTERM's handler as it was before the block, whatever the block installs (Ray's ``init`` installs one that
-    aborts the process). Main thread only; elsewhere a no-op."""
+def _handlers(handlers: dict):
+    """Inside the block each signal of ``handlers`` has the handler given (None: left as it is), afterwards the one it
+    had before. Main thread only, where Python lets handlers be set; elsewhere a no-op."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    saved = signal.getsignal(signal.SIGTERM)
-    try:
-        yield
-    finally:
-        if saved is not None:
-            signal.signal(signal.SIGTERM, saved)
-
-
-@contextlib.contextmanager
-def signals_ignored():
-    """SIGINT and SIGTERM ignored inside the block (main thread only; elsewhere a no-op), then as they were: the
-    checkpoint written on an interrupt is not cut short by the next one (a parent's SIGTERM after the terminal's
-    Ctrl-C, a second Ctrl-C)."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    saved = {s: signal.signal(s, signal.SIG_IGN) for s in (signal.SIGINT, signal.SIGTERM)}
+    saved = {s: signal.getsignal(s) for s in handlers}
+    for s, handler in handlers.items():
+        if handler is not None:
+            signal.signal(s, handler)
     try:
         yield
     finally:
         for s, handler in saved.items():
-            signal.signal(s, handler)
+            if handler is not None:  # None: a handler not set from Python, which cannot be put back
+                signal.signal(s, handler)
 
 
-@contextlib.contextmanager
+def sigterm_kept():
+    """SIGTERM's handler as it was before the block, whatever the block installs (Ray's ``init`` installs one that
+    aborts the process)."""
+    return _handlers({signal.SIGTERM: None})
+
+
+def signals_ignored():
+    """SIGINT and SIGTERM ignored inside the block, then as they were: the checkpoint written on an interrupt is not
+    cut short by the next one (a parent's SIGTERM after the terminal's Ctrl-C, a second Ctrl-C)."""
+    return _handlers({signal.SIGINT: signal.SIG_IGN, signal.SIGTERM: signal.SIG_IGN})
+
+
 def sigint_raises():
     """SIGINT raises ``KeyboardInterrupt`` inside the block even in a process that started with it ignored (any child
     of a background job): Ray cancels a running task by simulating SIGINT in its worker's main thread, which does
-    nothing where SIGINT is ignored. Main thread only; elsewhere a no-op."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    saved = signal.signal(signal.SIGINT, signal.default_int_handler)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGINT, saved)
+    nothing where SIGINT is ignored."""
+    return _handlers({signal.SIGINT: signal.default_int_handler})
 
 
 def stop_child(p: subprocess.Popen, interrupt: BaseException) -> None:
