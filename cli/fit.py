@@ -74,6 +74,9 @@ _no_undistort_option = click.option(
 @fit_option("--predict-offsets/--store-offsets", show_default=True,
             help="Stage 2: the predictor regenerates the leaves' offsets too (rendered with them, so the container "
                  "stores proxy offsets only).")
+@fit_option("--decoder-lr-restart/--no-decoder-lr-restart", "decoder_lr_stage2", show_default=True,
+            help="Stage 2: the decoder MLPs' learning-rate schedules start again at the stage switch (init -> final "
+                 "over stage 2), as they re-fit to predicted leaf features.")
 @fit_option("--lambda-rate", type=click.FloatRange(0.0), show_default=True,
             help="Stage 2: weight of the rate term (estimated bits per anchor of the stored attributes under the "
                  "entropy model; noise quantisation with learned steps per channel, which encode then uses). "
@@ -100,6 +103,10 @@ _no_undistort_option = click.option(
             help="Coverage gate slope kappa (training and rendering; stored with the decoder).")
 @fit_option("--gate-eta", type=float, show_default=True,
             help="Coverage gate threshold eta in pixels^2 (training and rendering; stored with the decoder).")
+@fit_option("--antialiased", is_flag=True,
+            help="gsplat's antialiased mode on top of the gate: each Gaussian's opacity times sqrt(det S / det(S + "
+                 "0.3 I)) of its projected covariance S, so that the 0.3-px dilation keeps its integral (training "
+                 "and rendering; stored with the decoder).")
 @fit_option("--voxel-size", type=float, show_default=True, help="Anchor voxel size; <= 0: chosen by --voxel-rule.")
 @fit_option("--voxel-rule", type=click.Choice(["auto", "extent", "spacing"]), show_default=True,
             help="Automatic voxel: the SfM points' median nearest-neighbour spacing (Scaffold-GS's; about one "
@@ -131,9 +138,9 @@ _no_undistort_option = click.option(
 @user_errors
 def fit(dataset, out, iters, time_budget, max_width, seed, no_gate, embedding, fixed_res, xi_sampling, xi_full_share,
         film_hidden, stats_min_xi, no_proxies, proxy_ratio, proxy_selection, predictor_hidden, predictor_blocks,
-        predictor_warmup, predictor_context, predict_offsets, lambda_rate, quant_cells, lr_quant_step, stage2_start,
+        predictor_warmup, predictor_context, predict_offsets, decoder_lr_stage2, lambda_rate, quant_cells, lr_quant_step, stage2_start,
         recon_loss, lambda_recon, predictor_kind,
-        gate_kappa, gate_eta, voxel_size, voxel_rule, max_anchors, init_points, images, test_every, no_undistort, resume, checkpoint_every,
+        gate_kappa, gate_eta, antialiased, voxel_size, voxel_rule, max_anchors, init_points, images, test_every, no_undistort, resume, checkpoint_every,
         keep_checkpoint, backend, explicit, sh_degree, max_gaussians) -> None:
     """Train an anchor scene on DATASET's photos (a Blender/NeRF-Synthetic or COLMAP folder, detected by its files).
 
@@ -164,10 +171,10 @@ def fit(dataset, out, iters, time_budget, max_width, seed, no_gate, embedding, f
     cfg = FitConfig(seed=seed, max_width=max_width, gate=not no_gate, embedding=embedding, fixed_res=fixed_res,
                     proxies=not no_proxies, voxel_size=voxel_size, voxel_rule=voxel_rule, max_anchors=max_anchors, checkpoint_every=checkpoint_every, backend=backend,
                     recon_loss=recon_loss, lambda_recon_fixed=lambda_recon_fixed, predictor=predictor_kind,
-                    gate_kappa=gate_kappa, gate_eta=gate_eta, proxy_ratio=proxy_ratio, proxy_selection=proxy_selection,
+                    gate_kappa=gate_kappa, gate_eta=gate_eta, antialiased=antialiased, proxy_ratio=proxy_ratio, proxy_selection=proxy_selection,
                     predictor_hidden=predictor_hidden, predictor_blocks=predictor_blocks,
                     predictor_warmup=predictor_warmup, predictor_context=predictor_context,
-                    predict_offsets=predict_offsets, lambda_rate=lambda_rate, quant_cells=quant_cells,
+                    predict_offsets=predict_offsets, decoder_lr_stage2=decoder_lr_stage2, lambda_rate=lambda_rate, quant_cells=quant_cells,
                     lr_quant_step=lr_quant_step,
                     stage2_start=stage2_start,
                     xi_sampling=xi_sampling,

@@ -559,7 +559,7 @@ def convert(ply_path: str | os.PathLike, out_ply: str | os.PathLike, config: Con
 
     log = log or (lambda s: print(s, file=sys.stderr, flush=True))
     t0 = time.perf_counter()
-    world_ply, _ = read_splats(ply_path)
+    world_ply, info = read_splats(ply_path)
     stages = {"read": time.perf_counter() - t0}
     frame = CanonicalFrame.of(world_ply)
     ply = frame.gaussians_in(world_ply)  # everything below works in the canonical frame
@@ -573,9 +573,12 @@ def convert(ply_path: str | os.PathLike, out_ply: str | os.PathLike, config: Con
     else:
         where = "given"
     log(f"background: {' '.join(f'{b:g}' for b in config.background)} ({where})")
+    if info.get("antialiased"):
+        log("the file says it was trained antialiased: its renders apply the filter's opacity compensation")
+    aa = bool(info.get("antialiased", False))  # the source renders as it was trained (SPZ flag 0x1)
     teacher = ExplicitModel(ply, tuple(config.background),
-                            {"kind": "inria-3dgs", "source": str(Path(ply_path)), "background_from": where}
-                            ).to(as_device(device))
+                            {"kind": "inria-3dgs", "source": str(Path(ply_path)), "background_from": where,
+                             "antialiased": aa}, antialiased=aa).to(as_device(device))
     cj = find_cameras_json(ply_path)
     layout = None
     if cj is not None:

@@ -61,6 +61,7 @@ from .render.project import quat_to_rotmat
 
 __all__ = [
     "NO_GATE",
+    "NO_GATE_ANTIALIASED",
     "DensifyResult",
     "ExplicitConfig",
     "ExplicitModel",
@@ -75,6 +76,9 @@ __all__ = [
 
 #: Plain 3DGS has no pixel coverage gate.
 NO_GATE = GateConfig(enabled=False)
+#: ... and a file trained with Mip-Splatting's / gsplat's antialiased filter (SPZ flag 0x1, our GLB extras) renders
+#: with its opacity compensation, as those trainers render it.
+NO_GATE_ANTIALIASED = GateConfig(enabled=False, antialiased=True)
 EXPLICIT_CHECKPOINT_KIND = "proxycodec.explicit-checkpoint"
 EXPLICIT_CHECKPOINT_VERSION = 1
 #: The parameter tensors of a run, in the order they are created (``initial_gaussians``).
@@ -566,6 +570,11 @@ class ExplicitModel:
     background: tuple[float, float, float] = PLY_BACKGROUND
     meta: dict = field(default_factory=dict)
     cameras: list | None = None
+    antialiased: bool = False  # the file says it was trained with the antialiased filter: rendered with it
+
+    @property
+    def gate(self) -> GateConfig:
+        return NO_GATE_ANTIALIASED if self.antialiased else NO_GATE
 
     def __post_init__(self) -> None:
         g = self.ply
@@ -602,7 +611,7 @@ class ExplicitModel:
         with torch.no_grad():
             colors = sh_colors(self._sh, self._means, cam.center, self.ply.sh_degree)
             return render_gaussians(self._means, self._quats, self._scales, self._op, colors, cam,
-                                    background=self.background, gate=NO_GATE, backend=backend)
+                                    background=self.background, gate=self.gate, backend=backend)
 
     @staticmethod
     def load(path: str | os.PathLike, background=None) -> ExplicitModel:
@@ -617,7 +626,8 @@ class ExplicitModel:
         ply, info = read_splats(path)
         cj = find_cameras_json(path)
         bg, where = ply_background(path) if background is None else (tuple(float(b) for b in background), "given")
+        aa = bool(info.get("antialiased", False))
         model = ExplicitModel(ply, bg, {"kind": "inria-3dgs", "source": str(Path(path)), "background_from": where,
-                                            "file_kind": info["kind"]})
+                                        "file_kind": info["kind"], "antialiased": aa}, antialiased=aa)
         model.cameras = read_scaffold_cameras(cj) if cj else default_cameras(None, model.scene.bounds())
         return model

@@ -101,6 +101,9 @@ class FitConfig:
     gate: bool = True  # pixel coverage gate on during training and rendering
     gate_kappa: float = 4.0
     gate_eta: float = 0.25
+    # gsplat's antialiased mode on top of the gate (``GateConfig.antialiased``): the opacity times
+    # sqrt(det Sigma2D / det(Sigma2D + 0.3 I)), in training and in every render of the scene
+    antialiased: bool = False
     feat_dim: int = 32
     n_offsets: int = 10
     film_hidden: int = 64  # width of the FiLM MLP's hidden layer
@@ -285,7 +288,7 @@ class FitConfig:
                              film_hidden=self.film_hidden,
                              scene_center=tuple(float(c) for c in center), scene_radius=float(radius),
                              film_xi_range=(1.0, 1.0) if self.fixed_res else (self.xi_min, self.xi_max),
-                             gate=GateConfig(self.gate, self.gate_kappa, self.gate_eta))
+                             gate=GateConfig(self.gate, self.gate_kappa, self.gate_eta, self.antialiased))
 
 
 

@@ -55,6 +55,8 @@ VARIANTS = {
                                     {"weights_dtype": "f16", "feature_bits": 32, "scaling_bits": 12}),
     # a converted scene's length unit: the MLPs' distance input and the near plane scale with it
     "film_length_unit": ({"length_unit": 0.37}, {}),
+    # gsplat's antialiased mode, stored with the decoder: the torch-free kernels read it from their constants
+    "film_antialiased": ({"gate": GateConfig(antialiased=True)}, {}),
 }
 
 

@@ -113,3 +113,53 @@ def test_covariance_is_psd_for_extreme_scales():
     cov = covariance_3d(q, s)
     ev = torch.linalg.eigvalsh(cov)
     assert torch.isfinite(cov).all() and (ev > -1e-6 * ev.abs().amax(1, keepdim=True)).all()
+
+
+@pytest.mark.parametrize("backend", ["reference", "cpu"])
+@pytest.mark.parametrize("sigma_px", [0.25, 0.5, 2.0])
+def test_antialiased_keeps_a_gaussians_integral(sigma_px, backend):
+    """gsplat's antialiased mode: the 0.3-px^2 dilation no longer adds to what a Gaussian deposits. One isotropic
+    Gaussian of sigma px in the middle of a black image (gate off): its dilated footprint summed over the pixel
+    centres is o 2 pi sigma^2 with the compensation, o 2 pi (sigma^2 + 0.3) without; the rasterizer draws exactly that
+    footprint where alpha >= 1/255."""
+    from proxycodec.render import render_gaussians
+
+    W = 64
+    cam = Camera.look_at([0, -4, 0], [0, 0, 0], fov_x_deg=40.0, width=W, height=W)
+    s = sigma_px * 4.0 / cam.fx  # a world scale projecting to sigma_px pixels at the centre, 4 units away
+    args = (torch.zeros(1, 3), torch.tensor([[1.0, 0, 0, 0]]), torch.full((1, 3), s), torch.tensor([0.9]),
+            torch.ones(1, 3))
+    ys, xs = torch.meshgrid(torch.arange(W) + 0.5, torch.arange(W) + 0.5, indexing="ij")
+    for aa, area in ((False, sigma_px ** 2 + 0.3), (True, math.sqrt(sigma_px ** 4 + GATE_DET_FLOOR))):
+        gate = GateConfig(enabled=False, antialiased=aa)
+        p = project_gaussians(*args, cam, gate=gate)
+        (ca, cb, cc), (mx, my) = p.conics[0], p.means2d[0]
+        dx, dy = xs - mx, ys - my
+        alpha = p.opacities[0] * torch.exp(-0.5 * (ca * dx * dx + 2 * cb * dx * dy + cc * dy * dy))
+        assert alpha.sum().item() == pytest.approx(0.9 * 2 * math.pi * area, rel=0.01)
+        r = render_gaussians(*args, cam, background=(0.0, 0.0, 0.0), gate=gate, backend=backend)
+        drawn = torch.where(alpha >= 1 / 255, alpha, 0.0)
+        assert torch.allclose(r.alpha.double().reshape(W, W), drawn, atol=1e-6)
+
+
+def test_antialiased_compensation_with_the_gate_and_its_json():
+    """rho multiplies the gated opacity; ``Projected.gate`` reports the product; the flag survives its JSON, which
+    scenes without it do not carry (their bytes stay as they were)."""
+    cam = Camera.look_at([0, -3, 0], [0, 0, 0], width=40, height=30)
+    args = (torch.tensor([[0.0, 0.0, 0.0], [0.1, 0.0, 0.05]]), torch.tensor([[1.0, 0, 0, 0]] * 2),
+            torch.tensor([[0.004] * 3, [0.2] * 3]), torch.tensor([0.9, 0.6]), torch.ones(2, 3))
+    plain = project_gaussians(*args, cam)
+    aa = project_gaussians(*args, cam, gate=GateConfig(antialiased=True))
+    assert plain.index.tolist() == aa.index.tolist() == [0, 1]
+    con = plain.conics
+    det_d = 1.0 / (con[:, 0] * con[:, 2] - con[:, 1] ** 2)  # det of the dilated covariance
+    a_d, c_d = con[:, 2] * det_d, con[:, 0] * det_d
+    b = -con[:, 1] * det_d
+    det_u = (a_d - 0.3) * (c_d - 0.3) - b * b
+    rho = torch.sqrt(det_u + GATE_DET_FLOOR) / torch.sqrt(det_d)
+    assert torch.allclose(aa.opacities, plain.opacities * rho, rtol=1e-10)
+    assert torch.allclose(aa.gate, plain.gate * rho, rtol=1e-10)
+    assert rho[0] < 0.2 < 0.9 < rho[1] < 1.0  # the sub-pixel one loses most, the larger one little
+    on = GateConfig(antialiased=True)
+    assert GateConfig.from_json(on.to_json()) == on
+    assert "antialiased" not in GATE.to_json() and GateConfig.from_json(GATE.to_json()) == GATE

@@ -216,6 +216,38 @@ class TestAgainstReference:
         on = project_gaussians_cpu(*params, cam)
         assert on.gate.min() < 0.5  # the scene has sub-pixel Gaussians the gate dims
 
+    @pytest.mark.parametrize("gate_on", [True, False])
+    def test_antialiased(self, gate_on):
+        """gsplat's antialiased mode (the opacity times sqrt(det_u / det)), with and without the gate: float64
+        elementwise, float32 norm-wise, and the sub-pixel Gaussians it dims."""
+        cam = camera()
+        gate = GateConfig(enabled=gate_on, antialiased=True)
+        params = scene(2000, seed=9, log_scale=math.log(0.004))
+        p, _ = compare(params, cam, elementwise=True, gate=gate)
+        plain = project_gaussians_cpu(*params, cam, gate=GateConfig(enabled=gate_on))
+        common, ip, ia = np.intersect1d(plain.index.numpy(), p.index.numpy(), return_indices=True)
+        assert len(common) > 500
+        ratio = p.opacities[ia] / plain.opacities[ip]
+        assert torch.allclose(p.gate[ia], plain.gate[ip] * ratio) and ratio.max() <= 1 and ratio.min() < 0.3
+        params32 = [t.float() for t in params]
+        (p, ga), (r, gr) = run_all([(project_gaussians_cpu, params32), (project_gaussians, params32)], cam, gate=gate)
+        assert_outputs_match(p, r, 1e-5, 1e-4)
+        assert_grads_match(ga, gr, 1e-3)
+
+    def test_gradcheck_float64_antialiased(self):
+        cam = camera(40, 32)
+        gate = GateConfig(antialiased=True)
+        means, quats, scales, op, colors = scene(8, seed=3, log_scale=math.log(0.05), spread=0.3, radius=0.3)
+        op = 0.3 + 0.5 * op
+        assert project_gaussians(means, quats, scales, op, colors, cam, gate=gate).count == 8
+
+        def f(m, q, s, o, c):
+            p = project_gaussians_cpu(m, q, s, o, c, cam, gate=gate)
+            return p.means2d, p.conics, p.opacities, p.colors, p.depths
+
+        leaves = [t.clone().requires_grad_(True) for t in (means, quats, scales, op, colors)]
+        assert torch.autograd.gradcheck(f, leaves, eps=1e-6, atol=1e-6, rtol=1e-5)
+
     def test_other_gate_parameters(self):
         compare(scene(1500, seed=8, log_scale=math.log(0.005)), camera(), gate=GateConfig(True, 9.0, 1.5))
 

@@ -23,14 +23,15 @@ _SER = {"fastmath": False, "cache": True, "nogil": True}
  _KAPPA, _ETA, _ZERO, _C255, _W, _H) = range(24)
 _R = 24  # camera rotation, 9 entries (row-major)
 _SH = 33  # shift, 3 entries
-_NK = 36
+_AA = 36  # 1: GateConfig.antialiased (the opacity times rho = sqrt(det_u + floor) sqrt(1 / det)), else 0
+_NK = 37
 
 # Per-Gaussian forward values (scratch row, input dtype), what the backward needs.
 (_PX, _PY, _PZ, _IZ, _RX, _RY, _TX, _TY, _FXZ, _FYZ, _NRM, _QN, _RQ, _T0, _T1, _U0, _U1, _A, _B, _C, W_DETU,
- _AD, _CD, W_DRAW, _DET, _IDET, _G, _OP, _SQ, _MX, _MY, _E0, _E1, _CA, _CB, _CC) = (
+ _AD, _CD, W_DRAW, _DET, _IDET, _G, _OP, _SQ, _MX, _MY, _E0, _E1, _CA, _CB, _CC, _RHO) = (
     0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 15, 24, 27, 30, 33, 36, 37, 38, 39, 40, 41, 42, 43, 44, 45, 46, 47, 48,
-    49, 50, 51, 52, 53, 54)
-NW = 55
+    49, 50, 51, 52, 53, 54, 55)
+NW = 56
 
 # Output columns of the forward's full-size buffer.
 _NOUT = 10  # mx, my, conic a, b, c, op, z, ext x, ext y, g
@@ -136,16 +137,23 @@ def forward_one(means, quats, scales, opac, i, k, gate_on, w):
     w[_CA] = ca
     w[_CB] = cb
     w[_CC] = cc
-    if gate_on:
+    aa = k[_AA] != k[_ZERO]
+    sq = one
+    if gate_on or aa:
         du = det_u if not (det_u < k[_ZERO]) else k[_ZERO]
         sq = np.sqrt(du + k[_FLOOR])
         w[_SQ] = sq
+    if gate_on:
         area = k[_PI] * sq
         g = one / (one + np.exp(-(k[_KAPPA] * (area - k[_ETA]))))
     else:
         g = one
     w[_G] = g
     op = o * g
+    if aa:
+        rho = sq * np.sqrt(idet)
+        w[_RHO] = rho
+        op = op * rho
     w[_OP] = op
     mx = k[_FX] * px * iz + k[_CX]
     my = k[_FY] * py * iz + k[_CY]
@@ -181,7 +189,7 @@ def _forward(means, quats, scales, opac, k, gate_on, n_chunks, scratch, vis, out
                 out[i, 6] = w[_PZ]
                 out[i, 7] = w[_E0]
                 out[i, 8] = w[_E1]
-                out[i, 9] = w[_G]
+                out[i, 9] = w[_G] * w[_RHO] if k[_AA] != k[_ZERO] else w[_G]
 
 
 @njit(**_PAR)
@@ -220,15 +228,23 @@ def backward_all(means, quats, scales, opac, k, gate_on, n_chunks, scratch, idx,
             o = float(opac[i])
             g = float(w[_G])
             gop = float(g_op[r])
-            # op = o * g
-            d_opac[i] = gop * g
-            d_detu = 0.0
+            aa = k[_AA] != k[_ZERO]
+            # op = o * g (* rho, antialiased: rho = sq sqrt(idet), sq = sqrt(max(det_u, 0) + floor))
+            rho = float(w[_RHO]) if aa else 1.0
+            d_opac[i] = gop * g * rho
+            dsq = 0.0
+            d_det_aa = 0.0
             if gate_on:
-                dg = gop * o
+                dg = gop * o * rho
                 dsig = dg * (1.0 - g) * g
                 dsq = float(k[_PI]) * float(k[_KAPPA]) * dsig
-                if w[W_DETU] >= k[_ZERO]:  # clamp_min passes the gradient where x >= min
-                    d_detu = dsq / (2.0 * float(w[_SQ]))
+            if aa:
+                drho = gop * o * g
+                dsq += drho * np.sqrt(float(w[_IDET]))
+                d_det_aa = -0.5 * drho * rho * float(w[_IDET])  # d rho / d det = -rho / (2 det)
+            d_detu = 0.0
+            if (gate_on or aa) and w[W_DETU] >= k[_ZERO]:  # clamp_min passes the gradient where x >= min
+                d_detu = dsq / (2.0 * float(w[_SQ]))
             a = float(w[_A])
             b = float(w[_B])
             c = float(w[_C])
@@ -244,7 +260,7 @@ def backward_all(means, quats, scales, opac, k, gate_on, n_chunks, scratch, idx,
             d_ad = gcc * idet
             db = -gcb * idet
             if w[W_DRAW] >= k[K_DD]:  # det.clamp_min(0.09)
-                d_draw = -d_idet * idet * idet
+                d_draw = -d_idet * idet * idet + d_det_aa
                 d_ad += d_draw * c_d
                 d_cd += d_draw * a_d
                 db -= 2.0 * b * d_draw
@@ -362,6 +378,7 @@ def constants(camera, gate: GateConfig, near: float, far: float, origin, np_dt) 
     k[_ZERO], k[_C255], k[_W], k[_H] = 0.0, 255.0, W, H
     k[_R:_R + 9] = np.asarray(camera.rotation, np.float64).reshape(9)
     k[_SH:_SH + 3] = np.asarray(shift, np.float64).reshape(3)
+    k[_AA] = 1.0 if gate.antialiased else 0.0
     return k.astype(np_dt)
 
 

@@ -37,18 +37,28 @@ QUAT_EPS = 1e-4
 
 @dataclass(frozen=True)
 class GateConfig:
-    """Pixel coverage gate g = sigmoid(kappa (A - eta)), A = pi sqrt(det Sigma2D) in pixels^2 (supplement 7.5)."""
+    """What a Gaussian's footprint in pixels does to its opacity.
+
+    The pixel coverage gate g = sigmoid(kappa (A - eta)), A = pi sqrt(det Sigma2D) in pixels^2 (supplement 7.5),
+    when ``enabled``. ``antialiased``: also gsplat's ``rasterize_mode="antialiased"`` (Mip-Splatting's 2D filter):
+    the opacity times rho = sqrt(det Sigma2D / det(Sigma2D + 0.3 I)), so that the dilation keeps a Gaussian's
+    integral instead of adding to it: a sub-pixel Gaussian then weighs what it covers. The two multiply."""
 
     enabled: bool = True
     kappa: float = 4.0
     eta: float = 0.25
+    antialiased: bool = False
 
     def to_json(self) -> dict:
-        return {"enabled": self.enabled, "kappa": self.kappa, "eta": self.eta}
+        d = {"enabled": self.enabled, "kappa": self.kappa, "eta": self.eta}
+        if self.antialiased:  # written only when on: scenes without it keep their bytes
+            d["antialiased"] = True
+        return d
 
     @staticmethod
     def from_json(d: dict) -> "GateConfig":
-        return GateConfig(bool(d.get("enabled", True)), float(d.get("kappa", 4.0)), float(d.get("eta", 0.25)))
+        return GateConfig(bool(d.get("enabled", True)), float(d.get("kappa", 4.0)), float(d.get("eta", 0.25)),
+                          bool(d.get("antialiased", False)))
 
 
 @dataclass
@@ -67,7 +77,7 @@ class Projected:
     depths: torch.Tensor  # [N] camera-space z
     extent: torch.Tensor  # [N, 2] half-widths in pixels (no gradient)
     index: torch.Tensor  # [N] long
-    gate: torch.Tensor  # [N] the gate value g (for diagnostics)
+    gate: torch.Tensor  # [N] the factor the footprint puts on the opacity: the gate g (times rho when antialiased)
     width: int
     height: int
 
@@ -97,6 +107,15 @@ def covariance_3d(quats: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
     """Sigma = R S S^T R^T from quaternions [N,4] and linear scales [N,3] -> [N,3,3]."""
     M = quat_to_rotmat(quats) * scales[..., None, :]
     return M @ M.transpose(-1, -2)
+
+
+def aa_compensation(det_sigma2d: torch.Tensor, det_dilated: torch.Tensor) -> torch.Tensor:
+    """rho = sqrt(det Sigma2D) * sqrt(1 / det(Sigma2D + 0.3 I)) (``GateConfig.antialiased``), the undilated det
+    clamped at 0 and floored by ``GATE_DET_FLOOR`` as in the gate (a bounded gradient for flat Gaussians; rho >= 0.03
+    there, where the gate is ~0 anyway). ``det_dilated``: the clamped dilated det the conics invert."""
+    import torch
+
+    return torch.sqrt(det_sigma2d.clamp_min(0.0) + GATE_DET_FLOOR) * torch.sqrt(1.0 / det_dilated)
 
 
 def coverage_gate(det_sigma2d: torch.Tensor, gate: GateConfig) -> torch.Tensor:
@@ -176,6 +195,10 @@ def project_gaussians(
 
     g = coverage_gate(det_u, gate)
     op = opacities * g
+    if gate.antialiased:
+        rho = aa_compensation(det_u, det)
+        op = op * rho
+        g = g * rho  # ``gate``: the whole factor the footprint puts on the opacity
     means2d = torch.stack([fx * p_cam[:, 0] * inv_z + cx, fy * p_cam[:, 1] * inv_z + cy], -1)
 
     # Conservative footprint: alpha = op * exp(-m^2/2) >= 1/255  <=>  m^2 <= 2 ln(255 op).
