@@ -184,8 +184,9 @@ def run_task(task: dict, retries: int = 0) -> dict:
 
 
 def _ray_task(task: dict, retries: int = 0) -> dict:
-    """``run_task`` as a Ray task, cancellable wherever its worker was started (``processes.sigint_raises``)."""
-    with sigint_raises():
+    """``run_task`` as a Ray task, cancellable wherever its worker was started (``processes.sigint_raises``); Ray's
+    cancel stops the task's child with SIGTERM at once (no terminal sent it a Ctrl-C to wait for)."""
+    with sigint_raises(cancel=True):
         return run_task(task, retries)
 
 

@@ -75,11 +75,17 @@ def signals_ignored():
     return _handlers({signal.SIGINT: signal.SIG_IGN, signal.SIGTERM: signal.SIG_IGN})
 
 
-def sigint_raises():
+def _cancel(signum, frame) -> None:
+    raise Terminated
+
+
+def sigint_raises(cancel: bool = False):
     """SIGINT raises ``KeyboardInterrupt`` inside the block even in a process that started with it ignored (any child
     of a background job): Ray cancels a running task by simulating SIGINT in its worker's main thread, which does
-    nothing where SIGINT is ignored."""
-    return _handlers({signal.SIGINT: signal.default_int_handler})
+    nothing where SIGINT is ignored. ``cancel``: it raises ``Terminated`` instead, for a SIGINT that no terminal sent
+    (Ray's cancel): ``stop_child`` then stops a child at once, without the Ctrl-C grace, which waits for a child that
+    the terminal's Ctrl-C reached too."""
+    return _handlers({signal.SIGINT: _cancel if cancel else signal.default_int_handler})
 
 
 def stop_child(p: subprocess.Popen, interrupt: BaseException) -> None:

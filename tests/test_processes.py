@@ -124,3 +124,27 @@ def test_sigint_raises_inside_the_block_even_where_it_was_ignored():
         assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
     finally:
         signal.signal(signal.SIGINT, before)
+
+
+def test_sigint_as_a_cancel_raises_terminated_and_the_child_gets_sigterm_at_once(monkeypatch):
+    """Ray's cancel (a SIGINT no terminal sent): ``Terminated``, so ``stop_child`` skips the Ctrl-C grace."""
+    from proxycodec import processes
+    from proxycodec.processes import sigint_raises
+
+    monkeypatch.setattr(processes, "CTRL_C_GRACE", 30.0)
+    before = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    code = "import time; print('ready', flush=True); time.sleep(60)"
+    p = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    try:
+        assert p.stdout.readline() == "ready\n"
+        with pytest.raises(Terminated) as e, sigint_raises(cancel=True):
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(5)  # never reached
+        t0 = time.monotonic()
+        stop_child(p, e.value)
+        assert p.returncode == -signal.SIGTERM and time.monotonic() - t0 < 10  # not after the 30-s grace
+        assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+    finally:
+        signal.signal(signal.SIGINT, before)
+        if p.poll() is None:
+            p.kill()

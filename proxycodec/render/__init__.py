@@ -200,8 +200,6 @@ def render_supersampled(model, camera, xi: float, factor: int = 1, *, backend: s
         return model.render(camera, xi, backend=backend)
     import dataclasses
 
-    import torch
-
     from ..camera import XI_MAX, check_xi
 
     small = camera.scaled(check_xi(xi))
