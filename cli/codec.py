@@ -106,7 +106,8 @@ def encode(scene, out, weights, proxy_ratio, proxy_selection, cell_size, feature
            refit_predictor, distill, distill_threshold, distill_iters, distill_time_budget, distill_views,
            distill_full_share,
            distill_targets, images, keep_anchor_scene,
-           voxel_size, max_anchors, target_size, views, view_size, background, max_width, as_json) -> None:
+           voxel_size, max_anchors, target_size, views, view_size, background, max_width, source_antialiased,
+           as_json) -> None:
     """Compress SCENE to a proxy-anchor container (writes OUT, default SCENE.pxc; prints its size).
 
     SCENE: an anchor scene (PLY + its .weights.pxc sidecar, e.g. from `proxycodec fit` or `sample`), a trained
@@ -146,12 +147,15 @@ def encode(scene, out, weights, proxy_ratio, proxy_selection, cell_size, feature
         # is the distillation's, measured for anchor scenes
         given = click.get_current_context().get_parameter_source("distill_iters") != click.core.ParameterSource.DEFAULT
         cfg = make_config(distill_iters if given else None, distill_time_budget, seed, voxel_size, views, view_size,
-                          background, max_width, max_anchors, target_size)
+                          background, max_width, max_anchors, target_size, source_antialiased=source_antialiased)
         _, r = convert_and_encode(p, out, cfg, keep=keep_anchor_scene, log=_stderr, device=command_device(), **knobs)
     else:
         if background is not None:
             raise ProxycodecError("--background applies to a 3DGS PLY; an anchor scene keeps the background it was "
                                   "trained on", p)
+        if source_antialiased != "scene":
+            raise ProxycodecError("--source-antialiased applies to a 3DGS PLY, SPZ or GLB (how its Gaussians render); "
+                                  "an anchor scene keeps its own setting", p)
         if max_anchors is not None or target_size is not None:
             raise ProxycodecError("--max-anchors and --target-size apply to a 3DGS PLY (they choose its anchors); "
                                   "an anchor scene keeps its own", p)

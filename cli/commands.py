@@ -10,7 +10,8 @@ import click
 
 from ..fileio import atomic_write
 from .common import (
-    background_option, command_device, on_device, parse_resolutions, render_views, supersample_option, user_errors,
+    antialiased_option, background_option, command_device, on_device, parse_resolutions, render_views,
+    supersample_option, user_errors,
 )
 
 
@@ -40,17 +41,20 @@ def sample(out: str, seed: int) -> None:
 @supersample_option
 @background_option("the scene's own (an anchor scene or container: the one it was trained on; a 3DGS PLY: "
                    "white_background in the trainer's cfg_args beside it or two folders up, else black)")
+@antialiased_option("the scene")
 @user_errors
 def render(scene: str, res: str, out_dir: str, views: tuple[int, ...], backend: str, supersample: int,
-           background) -> None:
+           background, antialiased_mode: str) -> None:
     """Render a scene at the given resolutions to PNG files (OUT/viewNNN_resX.XXX.png).
 
     Reads an anchor scene (PLY + weights, or a trained Scaffold-GS output), a container (leaves regenerated), or an
     INRIA 3DGS PLY (as plain 3DGS: SH colours, no gate). Views: the scene's stored cameras (a 3DGS PLY: its
     cameras.json's, else an orbit around it)."""
+    from ..model import apply_antialiased_mode
     from ..scenes import load_any
 
     model = on_device(load_any(scene))
+    apply_antialiased_mode(model, antialiased_mode)
     if background is not None:
         model.background = background
     render_views(model, parse_resolutions(res), Path(out_dir), list(views) or None, backend,

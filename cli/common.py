@@ -117,6 +117,17 @@ def supersample_option(f):
                              "Small sizes gain most, at little cost (benchmarks/README.md, 'Supersampling').")(f)
 
 
+def antialiased_option(what: str):
+    """``--antialiased scene|on|off``: the antialiased filter's opacity compensation for ``what`` renders
+    (``model.apply_antialiased_mode``)."""
+    return click.option(
+        "--antialiased", "antialiased_mode", type=click.Choice(["scene", "on", "off"]), default="scene",
+        show_default=True,
+        help=f"The antialiased filter's opacity compensation (gsplat's antialiased mode, Mip-Splatting's 2D filter) "
+             f"when {what} renders: the scene's own setting (an anchor scene's decoder; the flag of an SPZ or GLB; an "
+             f"INRIA PLY has none: 'on' for a gsplat PLY trained antialiased), or forced on or off.")
+
+
 class ConfigDefault(click.Option):
     """An option whose default is a field of a configuration dataclass (``config``: "module:Class"; ``field``: the
     option's name unless given; ``convert``: field value -> option value). The class is imported when click first

@@ -29,17 +29,23 @@ def convert_options(fn):
                           "(or two folders up), else black, the 3DGS trainers' default; the anchor scene keeps it"),
         click.option("--max-width", type=int, default=800, show_default=True,
                      help="Teacher views from cameras.json are downscaled to this width."),
+        click.option("--source-antialiased", type=click.Choice(["scene", "on", "off"]), default="scene",
+                     show_default=True,
+                     help="Render the source with the antialiased filter's opacity compensation (gsplat's antialiased "
+                          "mode, Mip-Splatting's 2D filter): as the file says (an SPZ's or GLB's flag; an INRIA PLY "
+                          "has none: 'on' for a gsplat PLY trained antialiased), or forced on or off."),
     ]):
         fn = opt(fn)
     return fn
 
 
 def make_config(iters, time_budget, seed, voxel_size, views, view_size, background, max_width, max_anchors=None,
-                target_size=None, lambda_rate=None, checkpoint_every=None):
+                target_size=None, lambda_rate=None, checkpoint_every=None, source_antialiased="scene"):
     from ..convert import ConvertConfig, replace_fit
 
     cfg = ConvertConfig(voxel_size=voxel_size, views=views, view_size=view_size, background=background,
-                        max_anchors=max_anchors, target_size=target_size)
+                        max_anchors=max_anchors, target_size=target_size,
+                        source_antialiased={"scene": None, "on": True, "off": False}[source_antialiased])
     run = {"max_width": max_width, "seed": seed}
     if iters is not None or time_budget is not None:
         run.update(iters=iters, time_budget=time_budget)
@@ -71,7 +77,7 @@ def make_config(iters, time_budget, seed, voxel_size, views, view_size, backgrou
 @click.option("--json", "as_json", is_flag=True, help="Print the conversion report as JSON on stdout.")
 @user_errors
 def convert(ply, out, iters, time_budget, seed, voxel_size, max_anchors, target_size, views, view_size, background,
-            max_width, lambda_rate, resume, checkpoint_every, as_json) -> None:
+            max_width, source_antialiased, lambda_rate, resume, checkpoint_every, as_json) -> None:
     """Turn an INRIA 3DGS PLY (SH degree 0..3; the reference trainer's, splatfacto's, an app's export) into a
     resolution-aware anchor scene, trained against the PLY's own renders: no images needed. Writes OUT (anchor PLY)
     and OUT.weights.pxc (MLPs, proxies and their stage-2 predictor: `encode OUT` uses them as they are); OUT.ckpt.pxc
@@ -83,7 +89,7 @@ def convert(ply, out, iters, time_budget, seed, voxel_size, max_anchors, target_
     from ..convert import convert as run
 
     cfg = make_config(iters, time_budget, seed, voxel_size, views, view_size, background, max_width, max_anchors,
-                      target_size, lambda_rate, checkpoint_every)
+                      target_size, lambda_rate, checkpoint_every, source_antialiased)
     r = run(ply, out, cfg, resume=resume, log=lambda m: click.echo(m, err=True), device=command_device())
     if as_json:
         click.echo(json.dumps(r.to_json(), indent=2))

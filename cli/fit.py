@@ -10,7 +10,8 @@ from pathlib import Path
 import click
 
 from .common import (
-    background_option, command_device, config_option, on_device, parse_resolutions, supersample_option, user_errors,
+    antialiased_option, background_option, command_device, config_option, on_device, parse_resolutions,
+    supersample_option, user_errors,
 )
 
 #: Options whose default is the field of the same name of ``FitConfig`` (``ExplicitConfig``: ``--explicit`` only).
@@ -221,12 +222,13 @@ def _fit_explicit(dataset, out, run: dict, max_width, seed, images, test_every, 
 @click.option("--gate", "gate_mode", type=click.Choice(["model", "on", "off"]), default="model", show_default=True,
               help="Coverage gate when rendering: the model's own setting, or forced on (post-hoc gating of a "
                    "model trained with --no-gate, with its stored kappa/eta) or off.")
+@antialiased_option("the scene")
 @supersample_option
 @background_option("the dataset's (its photos are composited on it) for a 3DGS PLY; an anchor scene or container "
                    "renders on the one it was trained on")
 @user_errors
 def eval_cmd(scene, dataset, out_dir, max_width, res, protocol, n_views, images, test_every, no_undistort, backend,
-             gate_mode, supersample, background) -> None:
+             gate_mode, antialiased_mode, supersample, background) -> None:
     """Evaluate SCENE on DATASET's test views at many resolutions: PSNR, SSIM, LPIPS, render time and Gaussians
     drawn per resolution.
 
@@ -242,11 +244,12 @@ def eval_cmd(scene, dataset, out_dir, max_width, res, protocol, n_views, images,
         EXTRA_RESOLUTIONS, MAIN_RESOLUTIONS, MIP_SPLATTING_SCALES, evaluate, report_markdown, write_report,
     )
     from ..explicit import ExplicitModel
-    from ..model import apply_gate_mode, reference_width
+    from ..model import apply_antialiased_mode, apply_gate_mode, reference_width
     from ..scenes import load_any
 
     model = on_device(load_any(scene))
     gate_used = apply_gate_mode(model, gate_mode)
+    antialiased = apply_antialiased_mode(model, antialiased_mode)
     meta = model.meta
     fit_meta = meta.get("fit", {}) if isinstance(meta.get("fit"), dict) else {}
     if max_width is None:
@@ -275,6 +278,7 @@ def eval_cmd(scene, dataset, out_dir, max_width, res, protocol, n_views, images,
     rep.summary["fit"] = {k: fit_meta.get(k) for k in ("iterations", "seconds", "stage")} if fit_meta else None
     rep.summary["max_width"] = max_width
     rep.summary["gate"] = {"mode": gate_mode, **gate_used} if gate_used is not None else None
+    rep.summary["antialiased"] = {"mode": antialiased_mode, "on": antialiased}
     out = Path(out_dir) if out_dir else Path(scene).with_name(Path(scene).stem + "_eval")
     paths = write_report(rep, out, crop_keys)
     click.echo(report_markdown(rep))

@@ -76,6 +76,9 @@ class ConvertConfig:
     # the background the source is rendered on (and the anchor scene's); None: the one the PLY was trained on
     # (``explicit.ply_background``: its cfg_args, else black)
     background: tuple[float, float, float] | None = None
+    # whether the source renders with the antialiased filter's opacity compensation (``GateConfig.antialiased``);
+    # None: as the file says (an SPZ's or GLB's flag; an INRIA PLY has none)
+    source_antialiased: bool | None = None
     lr_scale: float = 1.0  # fit's learning rates of the anchors and the decoder times this (FitConfig.with_lr_scale)
 
     def __post_init__(self) -> None:
@@ -573,9 +576,11 @@ def convert(ply_path: str | os.PathLike, out_ply: str | os.PathLike, config: Con
     else:
         where = "given"
     log(f"background: {' '.join(f'{b:g}' for b in config.background)} ({where})")
-    if info.get("antialiased"):
-        log("the file says it was trained antialiased: its renders apply the filter's opacity compensation")
-    aa = bool(info.get("antialiased", False))  # the source renders as it was trained (SPZ flag 0x1)
+    # the source renders as it was trained (SPZ flag 0x1), unless told
+    aa = bool(info.get("antialiased", False)) if config.source_antialiased is None else config.source_antialiased
+    if aa:
+        log("the source renders antialiased (the filter's opacity compensation): "
+            + ("its file says it was trained so" if config.source_antialiased is None else "as asked"))
     teacher = ExplicitModel(ply, tuple(config.background),
                             {"kind": "inria-3dgs", "source": str(Path(ply_path)), "background_from": where,
                              "antialiased": aa}, antialiased=aa).to(as_device(device))

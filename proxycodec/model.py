@@ -212,6 +212,27 @@ def reference_width(model) -> int | None:
     return max(widths) if widths else None
 
 
+ANTIALIASED_MODES = ("scene", "on", "off")
+
+
+def apply_antialiased_mode(model, mode: str) -> bool:
+    """Force the antialiased filter's opacity compensation (``GateConfig.antialiased``) on or off for rendering
+    (``mode`` "on" / "off"), or leave the scene's own setting ("scene": an anchor scene's decoder; a plain 3DGS
+    file's flag, which an SPZ or GLB carries and an INRIA PLY does not: a gsplat PLY trained ``antialiased`` needs
+    "on"). Works on anchor scenes and plain 3DGS models alike. Returns the setting now in effect."""
+    if mode not in ANTIALIASED_MODES:
+        raise ProxycodecError(f"antialiased mode must be scene, on or off, got {mode!r}")
+    dec = getattr(model, "decoder", None)
+    if dec is None:  # a plain 3DGS model (explicit.ExplicitModel)
+        if mode != "scene":
+            model.antialiased = mode == "on"
+        return bool(model.antialiased)
+    if mode != "scene":
+        cfg = dec.config
+        dec.config = replace(cfg, gate=replace(cfg.gate, antialiased=(mode == "on")))
+    return bool(dec.config.gate.antialiased)
+
+
 def apply_gate_mode(model, mode: str) -> dict | None:
     """Force the coverage gate of an anchor model on or off for rendering (``mode`` "on" / "off"), or leave the
     model's own setting ("model"). Returns the gate configuration now in effect (None for a plain 3DGS model, which

@@ -610,3 +610,71 @@ def test_results_do_not_depend_on_the_scene_s_units(tmp_path, k):
         np.testing.assert_allclose(cb.center, ca.center * k + np.array([3.0, -2.0, 5.0]) * k, rtol=1e-6)
         ia, ib = ma.render(ca, 0.5).image, mb.render(cb, 0.5).image
         assert float((ia - ib).abs().mean()) < 0.01 and float(ia.std()) > 0.01
+
+
+# ---------------------------------------------------------------------------------------------- antialiased sources
+def test_render_and_convert_take_the_antialiased_filter_for_a_plain_ply(tmp_path, monkeypatch):
+    """An INRIA PLY has no antialiased flag: `render --antialiased on` renders it with the compensation (as the
+    flagged SPZ of the same Gaussians renders by itself), `--antialiased off` renders the SPZ without it;
+    `convert --source-antialiased` reaches conversion's config (scene: None, the file decides), and `encode` refuses
+    it for an anchor scene."""
+    import proxycodec.convert as convert_module
+    from PIL import Image
+
+    from proxycodec.formats.spz import read_spz, write_spz
+
+    ply = _trainer_output(tmp_path, False)
+    spz_path = ply.with_name("aa.spz")  # beside the PLY: the same cameras.json, two folders up
+    write_spz(spz_path, read_inria_ply(ply), antialiased=True)
+    write_inria_ply(ply, read_spz(spz_path)[0])  # the SPZ's own (quantised) Gaussians, as a PLY
+
+    def render(src, *extra):
+        d = tmp_path / f"r{len(list(tmp_path.glob('r*')))}"
+        r = CliRunner().invoke(cli, ["render", str(src), "--res", "1", "-o", str(d), "--background", "black", *extra])
+        assert r.exit_code == 0, r.output
+        return np.asarray(Image.open(next(d.glob("*.png"))), np.float64)
+
+    plain, ply_on, spz, spz_off = (render(ply), render(ply, "--antialiased", "on"), render(spz_path),
+                                   render(spz_path, "--antialiased", "off"))
+    assert np.array_equal(ply_on, spz) and np.array_equal(plain, spz_off)
+    assert plain.sum() > ply_on.sum() > 0  # the compensation only ever dims
+
+    seen = []
+
+    def spy(src, out, cfg, **kw):
+        seen.append(cfg.source_antialiased)
+        raise ProxycodecError("stop here")
+
+    monkeypatch.setattr(convert_module, "convert", spy)
+    for mode in ("scene", "on", "off"):
+        res = CliRunner().invoke(cli, ["convert", str(ply), "-o", str(tmp_path / "a.ply"),
+                                       "--source-antialiased", mode])
+        assert res.exit_code == 2 and "stop here" in res.output
+    assert seen == [None, True, False]
+    other = tmp_path / "anchors.ply"  # not a plain 3DGS file: refused before it is read
+    other.write_text("ply\n")
+    res = CliRunner().invoke(cli, ["encode", str(other), "--source-antialiased", "on"])
+    assert res.exit_code == 2 and "--source-antialiased applies to a 3DGS" in res.output, res.output
+
+
+def test_a_flagged_spz_converts_against_its_antialiased_renders(tmp_path):
+    """The teacher of a conversion renders a flagged SPZ with the compensation (its report measures the source that
+    way), unless ``source_antialiased`` says otherwise."""
+    from dataclasses import replace as dc_replace
+
+    from proxycodec.convert import convert
+    from proxycodec.formats.spz import write_spz
+
+    write_spz(tmp_path / "g.spz", _ball(200), antialiased=True)
+    reports = {}
+    for told in (None, False):
+        lines = []
+        r = convert(tmp_path / "g.spz", tmp_path / f"a_{told}.ply", dc_replace(_tiny_config(iters=2),
+                                                                              source_antialiased=told),
+                    log=lines.append)
+        said = [s for s in lines if "renders antialiased" in s]
+        assert said == (["the source renders antialiased (the filter's opacity compensation): its file says it was "
+                         "trained so"] if told is None else [])
+        reports[told] = r.report["source_direct"]["per_resolution"]
+    # the source rendered directly, scored against its own supersampled renders: both change with the compensation
+    assert reports[None] != reports[False]

@@ -353,3 +353,26 @@ def test_a_file_flagged_antialiased_renders_with_the_compensation(tmp_path):
                             gate=NO_GATE_ANTIALIASED).image
     assert torch.equal(a, want)
     assert b.sum() > 1.5 * a.sum() > 0  # sub-pixel Gaussians deposit far less with the compensation
+
+
+def test_antialiased_mode_forces_the_compensation_on_either_kind_of_scene():
+    """``apply_antialiased_mode``: "scene" leaves a model as it is, "on" / "off" force it, on a plain 3DGS model
+    (its ``antialiased``) and an anchor scene (its decoder's gate) alike; anything else is refused."""
+    from proxycodec.errors import ProxycodecError
+    from proxycodec.explicit import ExplicitModel
+    from proxycodec.formats.inria_ply import GaussianPly
+    from proxycodec.model import apply_antialiased_mode
+    from proxycodec.sample import sample_model
+
+    rng = np.random.default_rng(5)
+    ex = ExplicitModel(GaussianPly(means=rng.normal(size=(8, 3)), sh=np.zeros((8, 1, 3)), opacities=np.zeros(8),
+                                   scales=np.full((8, 3), -3.0), quats=rng.normal(size=(8, 4))))
+    anchors = sample_model()
+    for model, get in ((ex, lambda m: m.antialiased), (anchors, lambda m: m.decoder.config.gate.antialiased)):
+        assert apply_antialiased_mode(model, "scene") is False and get(model) is False
+        assert apply_antialiased_mode(model, "on") is True and get(model) is True
+        assert apply_antialiased_mode(model, "scene") is True
+        assert apply_antialiased_mode(model, "off") is False and get(model) is False
+        with pytest.raises(ProxycodecError, match="scene, on or off"):
+            apply_antialiased_mode(model, "yes")
+    assert anchors.decoder.config.gate.enabled  # the gate itself is left alone
