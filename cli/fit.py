@@ -107,7 +107,8 @@ _no_undistort_option = click.option(
 @fit_option("--antialiased", is_flag=True,
             help="gsplat's antialiased mode on top of the gate: each Gaussian's opacity times sqrt(det S / det(S + "
                  "0.3 I)) of its projected covariance S, so that the 0.3-px dilation keeps its integral (training "
-                 "and rendering; stored with the decoder).")
+                 "and rendering; stored with the decoder). With --explicit: the 3DGS baseline trains with it, and "
+                 "its PLY, which cannot say so, renders as trained with render/eval --antialiased on.")
 @fit_option("--voxel-size", type=float, show_default=True, help="Anchor voxel size; <= 0: chosen by --voxel-rule.")
 @fit_option("--voxel-rule", type=click.Choice(["auto", "extent", "spacing"]), show_default=True,
             help="Automatic voxel: the SfM points' median nearest-neighbour spacing (Scaffold-GS's; about one "
@@ -159,7 +160,7 @@ def fit(dataset, out, iters, time_budget, max_width, seed, no_gate, embedding, f
         run["init_points"] = init_points
     if explicit:
         _fit_explicit(dataset, out, run, max_width, seed, images, test_every, not no_undistort, resume, backend,
-                      sh_degree, max_gaussians, checkpoint_every, keep_checkpoint)
+                      sh_degree, max_gaussians, checkpoint_every, keep_checkpoint, antialiased)
         return
     if lambda_recon.strip().lower() == "paper":
         lambda_recon_fixed = None
@@ -188,18 +189,20 @@ def fit(dataset, out, iters, time_budget, max_width, seed, no_gate, embedding, f
 
 
 def _fit_explicit(dataset, out, run: dict, max_width, seed, images, test_every, undistort, resume, backend,
-                  sh_degree, max_gaussians, checkpoint_every, keep_checkpoint) -> None:
+                  sh_degree, max_gaussians, checkpoint_every, keep_checkpoint, antialiased=False) -> None:
     """``fit --explicit``: the plain 3DGS baseline (``proxycodec.explicit``); ``run``: run length and init points
     where given."""
     from ..explicit import ExplicitConfig, run_explicit
 
     cfg = ExplicitConfig(seed=seed, max_width=max_width, sh_degree=sh_degree, backend=backend,
-                         max_gaussians=max_gaussians, checkpoint_every=checkpoint_every, **run)
+                         max_gaussians=max_gaussians, checkpoint_every=checkpoint_every, antialiased=antialiased,
+                         **run)
     data = _load_data(dataset, max_width, images, test_every, undistort)
     tr = run_explicit(data, cfg, lambda s: click.echo(s, err=True), out=out, device=command_device(), resume=resume,
                       keep_checkpoint=keep_checkpoint)
     click.echo(f"wrote {out} ({tr.num_gaussians} Gaussians, SH degree {sh_degree}, {tr.iteration} iterations, "
-               f"{tr.elapsed:.0f} s, {Path(out).stat().st_size:,} B)")
+               f"{tr.elapsed:.0f} s, {Path(out).stat().st_size:,} B)"
+               + ("; trained antialiased: render and eval it with --antialiased on" if antialiased else ""))
 
 
 @click.command("eval")

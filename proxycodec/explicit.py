@@ -168,6 +168,9 @@ class ExplicitConfig:
     prune_big_world: float = 0.1  # x extent
     opacity_reset_every: float = 0.0  # 0: never (3DGS: 3000 of 30000 = 0.1)
     max_gaussians: int = 300_000  # densification stops at this count (CPU guard)
+    # train with the antialiased filter's opacity compensation (gsplat's antialiased mode; ``GateConfig``): the PLY
+    # then renders as trained with ``render`` / ``eval --antialiased on`` (an INRIA PLY cannot say so itself)
+    antialiased: bool = False
     # bookkeeping
     image_cache_mb: int = 2048
     backend: str = "auto"
@@ -343,13 +346,15 @@ class ExplicitTrainer(TrainingRun):
 
     # ------------------------------------------------------------------ one iteration
     def render(self, camera, degree: int) -> RenderResult:
-        """Render the live Gaussians (with gradients) from ``camera`` at its own size, no gate."""
+        """Render the live Gaussians (with gradients) from ``camera`` at its own size, no gate (the antialiased
+        filter's compensation with ``antialiased``)."""
         q = self.params
         n_coef = (degree + 1) ** 2
         sh = torch.cat([q["sh_dc"], q["sh_rest"][:, :n_coef - 1]], 1)
         colors = sh_colors(sh, q["means"], camera.center, degree)
         return render_gaussians(q["means"], q["quats"], torch.exp(q["scales"]), torch.sigmoid(q["opacities"]),
-                                colors, camera, background=self.bg, gate=NO_GATE, backend=self.cfg.backend)
+                                colors, camera, background=self.bg,
+                                gate=NO_GATE_ANTIALIASED if self.cfg.antialiased else NO_GATE, backend=self.cfg.backend)
 
     def train_step(self) -> dict:
         """sample view and resolution -> render -> loss -> backward -> step -> densify (``TrainingRun.optimise``)."""
@@ -447,7 +452,8 @@ class ExplicitTrainer(TrainingRun):
             raise ProxycodecError("not a `fit --explicit` checkpoint of this version", path)
         try:
             saved, now = m["config"], self.cfg.to_json()
-            diff = [k for k in now if k not in _RESUME_MAY_CHANGE and saved.get(k) != now[k]]
+            default = ExplicitConfig().to_json()  # a setting newer than the checkpoint: it was at its default
+            diff = [k for k in now if k not in _RESUME_MAY_CHANGE and saved.get(k, default[k]) != now[k]]
             if diff:
                 raise ProxycodecError(f"checkpoint was made with different settings ({', '.join(diff[:5])}); "
                                       "resume with the same options or start afresh", path)

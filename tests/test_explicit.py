@@ -268,6 +268,8 @@ def test_resume_refuses_other_settings_and_missing_checkpoints(data, tmp_path):
         run_explicit(data, small_config(iters=10), log=None, out=out, stop_after=3)
     with pytest.raises(ProxycodecError, match=r"c\.ckpt\.pxc.*different settings \(sh_degree\)"):
         run_explicit(data, small_config(iters=10, sh_degree=2), log=None, out=out, resume=True)
+    with pytest.raises(ProxycodecError, match=r"different settings \(antialiased\)"):
+        run_explicit(data, small_config(iters=10, antialiased=True), log=None, out=out, resume=True)
     # the run length may change: 3 done + 4 more
     tr = run_explicit(data, small_config(iters=7, max_gaussians=500), log=None, out=out, resume=True,
                       keep_checkpoint=True)
@@ -275,6 +277,25 @@ def test_resume_refuses_other_settings_and_missing_checkpoints(data, tmp_path):
     checkpoint_path_for(out).write_bytes(b"not a container")
     with pytest.raises(ProxycodecError, match=r"c\.ckpt\.pxc"):
         run_explicit(data, small_config(iters=10), log=None, out=out, resume=True)
+
+
+def test_antialiased_training_renders_with_the_compensation(data):
+    """`fit --explicit --antialiased`: the trainer renders its Gaussians with the antialiased filter's compensation
+    (gsplat's antialiased mode), which differs from the plain render of the same Gaussians."""
+    from proxycodec.explicit import NO_GATE_ANTIALIASED, ExplicitTrainer, sh_colors
+    from proxycodec.render import render_gaussians
+
+    cam = data.cameras[data.train_indices[0]]
+    tr = ExplicitTrainer(data, small_config(iters=4, antialiased=True))
+    q = tr.params
+    with torch.no_grad():
+        got = tr.render(cam, 1).image
+        sh = torch.cat([q["sh_dc"], q["sh_rest"][:, :3]], 1)
+        want = render_gaussians(q["means"], q["quats"], torch.exp(q["scales"]), torch.sigmoid(q["opacities"]),
+                                sh_colors(sh, q["means"], cam.center, 1), cam, background=tr.bg,
+                                gate=NO_GATE_ANTIALIASED, backend=tr.cfg.backend).image
+        plain = ExplicitTrainer(data, small_config(iters=4)).render(cam, 1).image
+    assert torch.equal(got, want) and not torch.equal(got, plain)
 
 
 def test_random_resolution_option(data):
