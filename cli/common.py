@@ -117,11 +117,16 @@ def supersample_option(f):
                              "Small sizes gain most, at little cost (benchmarks/README.md, 'Supersampling').")(f)
 
 
+#: ``--antialiased`` / ``--source-antialiased`` (``model.antialiased_override``; kept here: building the command line
+#: imports no torch).
+ANTIALIASED_CHOICES = ("scene", "on", "off")
+
+
 def antialiased_option(what: str):
     """``--antialiased scene|on|off``: the antialiased filter's opacity compensation for ``what`` renders
     (``model.apply_antialiased_mode``)."""
     return click.option(
-        "--antialiased", "antialiased_mode", type=click.Choice(["scene", "on", "off"]), default="scene",
+        "--antialiased", "antialiased_mode", type=click.Choice(ANTIALIASED_CHOICES), default="scene",
         show_default=True,
         help=f"The antialiased filter's opacity compensation (gsplat's antialiased mode, Mip-Splatting's 2D filter) "
              f"when {what} renders: the scene's own setting (an anchor scene's decoder; the flag of an SPZ or GLB; an "

@@ -8,7 +8,7 @@ import json
 
 import click
 
-from .common import background_option, command_device, config_option, user_errors
+from .common import ANTIALIASED_CHOICES, background_option, command_device, config_option, user_errors
 
 convert_option = functools.partial(config_option, "proxycodec.convert:ConvertConfig")
 
@@ -29,7 +29,7 @@ def convert_options(fn):
                           "(or two folders up), else black, the 3DGS trainers' default; the anchor scene keeps it"),
         click.option("--max-width", type=int, default=800, show_default=True,
                      help="Teacher views from cameras.json are downscaled to this width."),
-        click.option("--source-antialiased", type=click.Choice(["scene", "on", "off"]), default="scene",
+        click.option("--source-antialiased", type=click.Choice(ANTIALIASED_CHOICES), default="scene",
                      show_default=True,
                      help="Render the source with the antialiased filter's opacity compensation (gsplat's antialiased "
                           "mode, Mip-Splatting's 2D filter): as the file says (an SPZ's or GLB's flag; an INRIA PLY "
@@ -42,10 +42,11 @@ def convert_options(fn):
 def make_config(iters, time_budget, seed, voxel_size, views, view_size, background, max_width, max_anchors=None,
                 target_size=None, lambda_rate=None, checkpoint_every=None, source_antialiased="scene"):
     from ..convert import ConvertConfig, replace_fit
+    from ..model import antialiased_override
 
     cfg = ConvertConfig(voxel_size=voxel_size, views=views, view_size=view_size, background=background,
                         max_anchors=max_anchors, target_size=target_size,
-                        source_antialiased={"scene": None, "on": True, "off": False}[source_antialiased])
+                        source_antialiased=antialiased_override(source_antialiased))
     run = {"max_width": max_width, "seed": seed}
     if iters is not None or time_budget is not None:
         run.update(iters=iters, time_budget=time_budget)

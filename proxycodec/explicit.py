@@ -79,6 +79,12 @@ NO_GATE = GateConfig(enabled=False)
 #: ... and a file trained with Mip-Splatting's / gsplat's antialiased filter (SPZ flag 0x1, our GLB extras) renders
 #: with its opacity compensation, as those trainers render it.
 NO_GATE_ANTIALIASED = GateConfig(enabled=False, antialiased=True)
+
+
+def plain_gate(antialiased: bool) -> GateConfig:
+    """How plain 3DGS renders: no gate, the antialiased filter's compensation when it was trained with it."""
+    return NO_GATE_ANTIALIASED if antialiased else NO_GATE
+
 EXPLICIT_CHECKPOINT_KIND = "proxycodec.explicit-checkpoint"
 EXPLICIT_CHECKPOINT_VERSION = 1
 #: The parameter tensors of a run, in the order they are created (``initial_gaussians``).
@@ -353,8 +359,8 @@ class ExplicitTrainer(TrainingRun):
         sh = torch.cat([q["sh_dc"], q["sh_rest"][:, :n_coef - 1]], 1)
         colors = sh_colors(sh, q["means"], camera.center, degree)
         return render_gaussians(q["means"], q["quats"], torch.exp(q["scales"]), torch.sigmoid(q["opacities"]),
-                                colors, camera, background=self.bg,
-                                gate=NO_GATE_ANTIALIASED if self.cfg.antialiased else NO_GATE, backend=self.cfg.backend)
+                                colors, camera, background=self.bg, gate=plain_gate(self.cfg.antialiased),
+                                backend=self.cfg.backend)
 
     def train_step(self) -> dict:
         """sample view and resolution -> render -> loss -> backward -> step -> densify (``TrainingRun.optimise``)."""
@@ -580,7 +586,7 @@ class ExplicitModel:
 
     @property
     def gate(self) -> GateConfig:
-        return NO_GATE_ANTIALIASED if self.antialiased else NO_GATE
+        return plain_gate(self.antialiased)
 
     def __post_init__(self) -> None:
         g = self.ply

@@ -220,17 +220,24 @@ def apply_antialiased_mode(model, mode: str) -> bool:
     (``mode`` "on" / "off"), or leave the scene's own setting ("scene": an anchor scene's decoder; a plain 3DGS
     file's flag, which an SPZ or GLB carries and an INRIA PLY does not: a gsplat PLY trained ``antialiased`` needs
     "on"). Works on anchor scenes and plain 3DGS models alike. Returns the setting now in effect."""
-    if mode not in ANTIALIASED_MODES:
-        raise ProxycodecError(f"antialiased mode must be scene, on or off, got {mode!r}")
+    forced = antialiased_override(mode)
     dec = getattr(model, "decoder", None)
     if dec is None:  # a plain 3DGS model (explicit.ExplicitModel)
-        if mode != "scene":
-            model.antialiased = mode == "on"
+        if forced is not None:
+            model.antialiased = forced
         return bool(model.antialiased)
-    if mode != "scene":
+    if forced is not None:
         cfg = dec.config
-        dec.config = replace(cfg, gate=replace(cfg.gate, antialiased=(mode == "on")))
+        dec.config = replace(cfg, gate=replace(cfg.gate, antialiased=forced))
     return bool(dec.config.gate.antialiased)
+
+
+def antialiased_override(mode: str) -> bool | None:
+    """``--antialiased`` / ``--source-antialiased``'s ``mode`` -> None ("scene": the scene's own setting), True
+    ("on") or False ("off")."""
+    if mode not in ANTIALIASED_MODES:
+        raise ProxycodecError(f"antialiased mode must be scene, on or off, got {mode!r}")
+    return None if mode == "scene" else mode == "on"
 
 
 def apply_gate_mode(model, mode: str) -> dict | None:
