@@ -54,7 +54,8 @@ from proxycodec.formats.inria_ply import read_inria_ply
 from proxycodec.formats.spz import write_spz
 print('3dgs.spz', write_spz(sys.argv[2], read_inria_ply(sys.argv[1])), 'B')" "$OUT/3dgs.ply" "$OUT/3dgs.spz"
 fi
-want scaffold && fit scaffold --no-proxies --no-gate --embedding none --fixed-res --voxel-rule spacing
+want scaffold && fit scaffold --no-proxies --no-gate --embedding none --fixed-res --voxel-rule spacing \
+  --color-init-steps 0 --init-gaussian-scale 1
 want fixedres && fit fixedres --fixed-res
 if want encode; then
   [ -f "$OUT/ours.pxc" ] || $PC encode "$OUT/ours.ply" -o "$OUT/ours.pxc" ${ENCODE_ARGS:-} > "$OUT/encode.log" 2>&1

@@ -11,9 +11,10 @@ each step finishes, a re-run resumes):
 1. fit-budget sweep: ``fit`` under wall-time budgets (the largest is the *main* fit), each encoded with the default
    settings (``proxycodec encode SCENE``: the stage-2 proxies and predictor as fitted) and evaluated;
 2. the main fit uncompressed (anchor PLY + weights);
-3. baselines at the main budget: plain Scaffold-GS (``fit --no-proxies --no-gate --embedding none --fixed-res``)
-   uncompressed, and plain 3DGS (``fit --explicit``) as an INRIA PLY and as SPZ (``npx @playcanvas/splat-transform``,
-   converted back to PLY to evaluate what the SPZ holds; skipped with the reason when npx cannot run it);
+3. baselines at the main budget: plain Scaffold-GS (``fit --no-proxies --no-gate --embedding none --fixed-res
+   --voxel-rule spacing --color-init-steps 0 --init-gaussian-scale 1``) uncompressed, and plain 3DGS (``fit
+   --explicit``) as an INRIA PLY and as SPZ (``npx @playcanvas/splat-transform``, converted back to PLY to evaluate
+   what the SPZ holds; skipped with the reason when npx cannot run it);
 4. encode-side sweeps on the main fit, one knob at a time around the defaults, predictor refitted at each point:
    proxy ratio, leaf sample fraction per predictor iteration, quantisation bits (uniform grids of those depths,
    ``learned_steps=False``: on a rate-trained scene encode otherwise quantises on the learned grids and the bit
@@ -119,7 +120,8 @@ QUICK_ABLATIONS = ("coverage gate off (trained and rendered without)",
                    "coverage gate post hoc (trained without, rendered with)", "L_recon MSE",
                    "predictor Proxy&Leaf MLP")
 # Scaffold-GS's own voxel (the SfM points' spacing) whatever the budget: ``auto`` is ours
-SCAFFOLD = {"proxies": False, "gate": False, "embedding": "none", "fixed_res": True, "voxel_rule": "spacing"}
+SCAFFOLD = {"proxies": False, "gate": False, "embedding": "none", "fixed_res": True, "voxel_rule": "spacing",
+            "color_init_steps": 0, "init_gaussian_scale": 1.0}
 
 
 def fit_config(budget: float, seed: int, iters: int | None = None, **overrides) -> dict:

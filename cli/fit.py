@@ -116,6 +116,13 @@ _no_undistort_option = click.option(
                  "where they get more iterations). auto: spacing when the run reaches 1000 iterations at that "
                  "density (--iters, or the pace of 10 probe steps under --time-budget), else extent. Without SfM "
                  "points: extent.")
+@fit_option("--color-init-steps", type=click.IntRange(min=0), show_default=True,
+            help="Steps that fit the new anchors' features to their voxels' SfM point colours before training (on "
+                 "the training clock; 3DGS starts its Gaussians from those colours). 0: Scaffold-GS's zero "
+                 "features. Without SfM colours (Blender): none.")
+@fit_option("--init-gaussian-scale", type=click.FloatRange(0.0, min_open=True),
+            help="The new anchors' Gaussians start at this multiple of the anchors' neighbour distance (Scaffold-GS: "
+                 "1) [default: as large as at Scaffold-GS's spacing density: 1 there, below 1 at a coarser voxel].")
 @fit_option("--max-anchors", type=click.IntRange(min=1),
             help="Stop growing anchors at this many [default: no cap; the scene decides, as in Scaffold-GS].")
 @click.option("--init-points", type=int, default=None,
@@ -142,7 +149,8 @@ def fit(dataset, out, iters, time_budget, max_width, seed, no_gate, embedding, f
         film_hidden, stats_min_xi, no_proxies, proxy_ratio, proxy_selection, predictor_hidden, predictor_blocks,
         predictor_warmup, predictor_context, predict_offsets, decoder_lr_stage2, lambda_rate, quant_cells, lr_quant_step, stage2_start,
         recon_loss, lambda_recon, predictor_kind,
-        gate_kappa, gate_eta, antialiased, voxel_size, voxel_rule, max_anchors, init_points, images, test_every, no_undistort, resume, checkpoint_every,
+        gate_kappa, gate_eta, antialiased, voxel_size, voxel_rule, color_init_steps, init_gaussian_scale, max_anchors,
+        init_points, images, test_every, no_undistort, resume, checkpoint_every,
         keep_checkpoint, backend, explicit, sh_degree, max_gaussians) -> None:
     """Train an anchor scene on DATASET's photos (a Blender/NeRF-Synthetic or COLMAP folder, detected by its files).
 
@@ -171,7 +179,9 @@ def fit(dataset, out, iters, time_budget, max_width, seed, no_gate, embedding, f
             raise click.BadParameter(f"expected a number or 'paper', got {lambda_recon!r}",
                                      param_hint="--lambda-recon") from None
     cfg = FitConfig(seed=seed, max_width=max_width, gate=not no_gate, embedding=embedding, fixed_res=fixed_res,
-                    proxies=not no_proxies, voxel_size=voxel_size, voxel_rule=voxel_rule, max_anchors=max_anchors, checkpoint_every=checkpoint_every, backend=backend,
+                    proxies=not no_proxies, voxel_size=voxel_size, voxel_rule=voxel_rule,
+                    color_init_steps=color_init_steps, init_gaussian_scale=init_gaussian_scale,
+                    max_anchors=max_anchors, checkpoint_every=checkpoint_every, backend=backend,
                     recon_loss=recon_loss, lambda_recon_fixed=lambda_recon_fixed, predictor=predictor_kind,
                     gate_kappa=gate_kappa, gate_eta=gate_eta, antialiased=antialiased, proxy_ratio=proxy_ratio, proxy_selection=proxy_selection,
                     predictor_hidden=predictor_hidden, predictor_blocks=predictor_blocks,

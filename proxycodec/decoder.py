@@ -115,6 +115,20 @@ class GaussianDecoder(nn.Module):
                 + features * w[:, 2:])
 
     # -------------------------------------------------------------- anchors -> Gaussians
+    def mlp_input(self, positions: torch.Tensor, features: torch.Tensor, camera_center: torch.Tensor, xi: float
+                  ) -> tuple[torch.Tensor, torch.Tensor]:
+        """-> (anchor - camera [M, 3], the MLPs' input [M, F + 4]: embedded feature, view direction, distance in
+        the MLPs' units). Each MLP reads it whole or without the distance (``mlp_inputs``)."""
+        cfg = self.config
+        f_hat = self.embed(positions, features, xi)
+        view = positions - camera_center
+        dist = view.norm(dim=1, keepdim=True)
+        direction = view / dist.clamp_min(1e-12)
+        dist = dist / cfg.length_unit  # the MLPs' units (exact for 1)
+        if cfg.feature_bank:
+            f_hat = self.feature_bank(f_hat, direction, dist)
+        return view, torch.cat([f_hat, direction, dist], -1)
+
     def forward(
         self,
         positions: torch.Tensor,  # [M, 3]
@@ -126,15 +140,7 @@ class GaussianDecoder(nn.Module):
     ) -> NeuralGaussians:
         cfg = self.config
         K = cfg.n_offsets
-        f_hat = self.embed(positions, features, xi)
-        view = positions - camera_center
-        dist = view.norm(dim=1, keepdim=True)
-        direction = view / dist.clamp_min(1e-12)
-        dist = dist / cfg.length_unit  # the MLPs' units (exact for 1)
-        if cfg.feature_bank:
-            f_hat = self.feature_bank(f_hat, direction, dist)
-        x = torch.cat([f_hat, direction, dist], -1)
-
+        view, x = self.mlp_input(positions, features, camera_center, xi)
         opacity = torch.tanh(self.mlp_opacity(x if cfg.opacity_dist else x[:, :-1]))  # [M, K]
         with torch.no_grad():
             mask = opacity > 0

@@ -120,6 +120,16 @@ class FitConfig:
     voxel_divisions: int = 128
     density_iters: int = 1000
     init_points: int = 5_000  # random points in the bounds when the dataset has no SfM points (Blender)
+    # [D] Adam steps that fit the new anchors' features (and the colour MLP) to their voxels' SfM colours before
+    # training, on the training clock (``fit_initial_colors``); 0, or a dataset without SfM colours: Scaffold-GS's
+    # zero features
+    color_init_steps: int = 100
+    # [D] the anchors' Gaussian scale (the last 3 of their 6 log scalings) starts at this multiple of Scaffold-GS's,
+    # the anchors' 3-nearest-neighbour distance (the offsets' scale, the first 3, keeps it). None: as large as
+    # Scaffold-GS's density (``voxel_rule`` spacing) would start it, i.e. the median of that distance at the spacing
+    # voxel over its median at the voxel taken (1 at spacing and without SfM points; bonsai at extent / 128: 0.33).
+    # Scaffold-GS's (1) at the coarser extent density costs a short fit its first ~250 iterations (SPEC.md section 5).
+    init_gaussian_scale: float | None = None
     # loss
     lambda_dssim: float = 0.2
     lambda_volume: float = 0.01
@@ -243,6 +253,11 @@ class FitConfig:
             raise ProxycodecError(f"voxel rule {self.voxel_rule!r}: must be one of {', '.join(VOXEL_RULES)}")
         if self.density_iters < 1:
             raise ProxycodecError(f"the density switch must be >= 1 iteration, got {self.density_iters}")
+        if self.init_gaussian_scale is not None and not (0.0 < self.init_gaussian_scale < math.inf):
+            raise ProxycodecError(f"the initial Gaussian scale must be a positive multiple, got "
+                                  f"{self.init_gaussian_scale}")
+        if self.color_init_steps < 0:
+            raise ProxycodecError(f"colour init steps must be >= 0, got {self.color_init_steps}")
         if self.predictor_warmup < 0:
             raise ProxycodecError(f"predictor warm-up must be >= 0 iterations, got {self.predictor_warmup}")
         if self.recon_loss not in RECON_LOSSES:
@@ -347,6 +362,68 @@ def voxelise(points: np.ndarray, voxel: float) -> np.ndarray:
     return cells.astype(np.float64) * voxel
 
 
+def cell_means(points: np.ndarray, values: np.ndarray, voxel: float, anchors: np.ndarray) -> np.ndarray:
+    """[M, ...]: the mean of ``values`` [N, ...] over the points in each anchor's voxel (``voxelise``'s cells; the
+    anchors may be a subset of them, as ``max_anchors`` leaves)."""
+    cells = np.round(points / voxel).astype(np.int64)
+    keys = np.round(anchors / voxel).astype(np.int64)
+    uniq, inv = np.unique(cells, axis=0, return_inverse=True)
+    inv = inv.reshape(-1)
+    values = np.asarray(values, dtype=np.float64)
+    sums = np.zeros((len(uniq), *values.shape[1:]))
+    np.add.at(sums, inv, values)
+    mean = sums / np.bincount(inv, minlength=len(uniq)).reshape(-1, *[1] * (values.ndim - 1))
+    row = [("", np.int64)] * 3  # a cell as one structured scalar, to search np.unique's sorted rows
+    at = np.searchsorted(uniq.view(row).reshape(-1), np.ascontiguousarray(keys).view(row).reshape(-1))
+    return mean[at]
+
+
+def fit_initial_colors(decoder: GaussianDecoder, positions: torch.Tensor, features: torch.Tensor,
+                       target: torch.Tensor, camera_centers: torch.Tensor, steps: int, lr: float,
+                       generator: torch.Generator) -> tuple[float, float]:
+    """Fit the anchors' ``features`` (in place) and the colour MLP so that every neural Gaussian of an anchor
+    starts with its voxel's SfM colour ``target`` [M, 3], seen from the training cameras, while the opacity and
+    covariance MLPs' outputs stay where the zero features put them. Scaffold-GS starts from zero features, every
+    anchor the same colour, and spends its first few hundred iterations on what 3DGS's SfM-coloured points start
+    with (SPEC.md section 5). -> (colour RMSE before, after)."""
+    cfg = decoder.config
+    n_in = cfg.mlp_inputs()
+
+    def heads(x: torch.Tensor):  # each MLP's input as ``GaussianDecoder.forward`` cuts it (``mlp_inputs``)
+        def cut(name):
+            return x[:, :n_in[name]]
+        return (torch.sigmoid(decoder.mlp_color(cut("mlp_color"))),
+                torch.tanh(decoder.mlp_opacity(cut("mlp_opacity"))), decoder.mlp_cov(cut("mlp_cov")))
+
+    M = positions.shape[0]
+    f = features.detach().clone().requires_grad_(True)
+    params = [f, *decoder.mlp_color.parameters()]
+    opt = torch.optim.Adam(params, lr=lr)
+    tgt = target.repeat(1, cfg.n_offsets)
+    rmse = []
+    for k in range(steps + 1):
+        cams = camera_centers[torch.randint(len(camera_centers), (M,), generator=generator,
+                                            device=generator.device)]
+        view = positions - cams
+        dist = view.norm(dim=1, keepdim=True)
+        tail = torch.cat([view / dist.clamp_min(1e-12), dist / cfg.length_unit], -1)
+        with torch.no_grad():
+            _, o0, c0 = heads(torch.cat([decoder.embed(positions, features, 1.0), tail], -1))
+        color, o, c = heads(torch.cat([decoder.embed(positions, f, 1.0), tail], -1))
+        err = (color - tgt).square().mean()
+        if k in (0, steps):  # read back twice only (a GPU would wait at each)
+            rmse.append(float(err.detach().sqrt()))
+        if k == steps:
+            break
+        loss = err + (o - o0).square().mean() + (c - c0).square().mean()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    with torch.no_grad():
+        features.copy_(f)
+    return rmse[0], rmse[-1]
+
+
 def density_rule(cfg: FitConfig, expected_iters: float | None = None) -> str:
     """The voxel rule ``cfg`` stands for: "auto" resolved by the run's expected length (``expected_iters``, else
     ``cfg.iters``; neither known: spacing, which ``fit`` avoids by measuring the pace first)."""
@@ -365,10 +442,29 @@ def initial_voxel(pts: np.ndarray, extent: float, cfg: FitConfig, has_sfm: bool)
     return extent / cfg.voxel_divisions
 
 
-def initial_anchors(data, cfg: FitConfig, rng: np.random.Generator) -> tuple[np.ndarray, float, np.ndarray, float]:
-    """-> (anchor positions [M, 3], voxel size, scene centre [3], scene radius) from the dataset. With
-    ``cfg.max_anchors``, a larger voxelised set is subsampled to it (at random, seeded)."""
-    pts, _, bounds, extent = initial_points(data, cfg.init_points, rng, "anchors")
+@dataclass(frozen=True)
+class InitialAnchors:
+    """Where a fit's anchors start (``initial_anchors``)."""
+
+    positions: np.ndarray  # [M, 3] voxel centres
+    voxel: float
+    center: np.ndarray  # [3] the bounds' centre
+    radius: float  # half the bounds' diagonal
+    colors: np.ndarray | None  # [M, 3] in 0..1: the mean SfM colour of each voxel's points; None without colours
+    gaussian_scale: float  # ``FitConfig.init_gaussian_scale`` resolved
+
+    def scalings(self) -> np.ndarray:
+        """[M, 6] log scalings: Scaffold-GS's, the anchors' 3-nearest-neighbour distance, the Gaussians' part (last
+        3) times ``gaussian_scale``."""
+        out = np.repeat(np.log(knn_scale(self.positions))[:, None], 6, 1)
+        out[:, 3:] += math.log(self.gaussian_scale)
+        return out
+
+
+def initial_anchors(data, cfg: FitConfig, rng: np.random.Generator) -> InitialAnchors:
+    """The anchors of a new fit from the dataset's points (``initial_points``) voxelised. With ``cfg.max_anchors``, a
+    larger voxelised set is subsampled to it (at random, seeded)."""
+    pts, colors, bounds, extent = initial_points(data, cfg.init_points, rng, "anchors")
     voxel = initial_voxel(pts, extent, cfg, has_sfm_points(data))
     anchors = voxelise(pts, voxel)
     if cfg.max_anchors is not None and len(anchors) > cfg.max_anchors:
@@ -377,8 +473,13 @@ def initial_anchors(data, cfg: FitConfig, rng: np.random.Generator) -> tuple[np.
         raise ProxycodecError("no initial anchors")
     center = 0.5 * (bounds[0] + bounds[1])
     radius = max(0.5 * float(np.linalg.norm(bounds[1] - bounds[0])), 1e-6)
-    return anchors, float(voxel), center, radius
-
+    colors = None if colors is None else np.clip(cell_means(pts, colors, voxel, anchors) / 255.0, 0.0, 1.0)
+    scale = cfg.init_gaussian_scale
+    if scale is None:
+        scale = 1.0
+        if has_sfm_points(data) and (spacing := point_spacing(pts)) > 0 and spacing < voxel:
+            scale = min(1.0, float(np.median(knn_scale(voxelise(pts, spacing))) / np.median(knn_scale(anchors))))
+    return InitialAnchors(anchors, float(voxel), center, radius, colors, scale)
 
 
 # ================================================================================================ the trainer
@@ -415,14 +516,15 @@ class Trainer(TrainingRun):
         self.images = (make_targets or (lambda n: TargetImages(data, n, dev)))(config.image_cache_mb << 20)
         torch.manual_seed(config.seed)
         if start is None:
-            anchors, voxel, center, radius = initial_anchors(data, config, self.rng)
-            M, K, Fd = len(anchors), config.n_offsets, config.feat_dim
-            scale = np.log(knn_scale(anchors))
+            init = initial_anchors(data, config, self.rng)
+            M, K, Fd = len(init.positions), config.n_offsets, config.feat_dim
+            scale = init.scalings()
+            self.log(f"anchors: {M} at voxel {init.voxel:.4g}, Gaussians start at {init.gaussian_scale:.3g}x the "
+                     f"anchors' neighbour distance")
             self.anchors = TrainableAnchors(
-                torch.tensor(anchors, dtype=torch.float32, device=dev), torch.zeros(M, Fd, device=dev),
-                torch.zeros(M, K, 3, device=dev),
-                torch.tensor(np.repeat(scale[:, None], 6, 1), dtype=torch.float32, device=dev), voxel)
-            self.decoder = GaussianDecoder(config.decoder_config(center, radius)).to(dev)
+                torch.tensor(init.positions, dtype=torch.float32, device=dev), torch.zeros(M, Fd, device=dev),
+                torch.zeros(M, K, 3, device=dev), torch.tensor(scale, dtype=torch.float32, device=dev), init.voxel)
+            self.decoder = GaussianDecoder(config.decoder_config(init.center, init.radius)).to(dev)
             with torch.no_grad():  # Gaussians start visible (see FitConfig.opacity_bias_init)
                 self.decoder.mlp_opacity[-1].bias.add_(config.opacity_bias_init)
         else:
@@ -445,7 +547,27 @@ class Trainer(TrainingRun):
         self.opt = self._optimiser()
         self.strategy = ScaffoldStrategy(config, self.anchors.num_anchors, self.anchors.n_offsets, self.log, dev)
         self._start_run()
+        self.initial_colors = init.colors if start is None else None  # ``color_init``'s targets
         self.stage = 1
+
+    def color_init(self) -> None:
+        """``fit_initial_colors`` on anchors grown from the dataset's points (``fit`` calls it once, before
+        training), counted in ``elapsed``: a time budget pays for it."""
+        c, data, a = self.cfg, self.data, self.anchors
+        if self.initial_colors is None or c.color_init_steps <= 0:
+            return
+        t0 = time.perf_counter()
+        target = self.initial_colors
+        centers = np.stack([data.cameras[i].center for i in data.train_indices])
+        gen = generator(self.device, c.seed)
+        before, after = fit_initial_colors(
+            self.decoder, a.positions, a.features.data, upload(target, self.device, torch.float32),
+            upload(centers, self.device, torch.float32), c.color_init_steps, 0.01, gen)
+        synchronize(self.device)
+        seconds = time.perf_counter() - t0
+        self.elapsed += seconds
+        self.log(f"colour init: {c.color_init_steps} steps, colour RMSE {before:.3f} -> {after:.3f} against the "
+                 f"voxels' SfM colours, {seconds:.1f} s")
 
     def _optimiser(self) -> Adam:
         opt = Adam(self.anchors.tensors())
@@ -873,8 +995,10 @@ def fit(data, out_ply: str | os.PathLike, config: FitConfig = FitConfig(), *, da
         if rule != "spacing":  # start afresh at the extent density; the probe's seconds stay spent
             spent = tr.elapsed
             tr = make(replace(config, voxel_rule=rule))
-            tr.elapsed = spent
+            tr.elapsed += spent
         tr.density = info
+    if not resume:
+        tr.color_init()
     log(f"fit: {len(data.train_indices)} training views, {tr.anchors.num_anchors} anchors "
         f"(voxel {tr.anchors.voxel_size:.4g}), setup {time.perf_counter() - t_setup:.1f} s; "
         f"iters {config.iters}, time budget {config.time_budget}")

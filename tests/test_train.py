@@ -548,6 +548,7 @@ class TestFit:
         from types import SimpleNamespace
 
         from proxycodec.errors import ProxycodecError
+        from proxycodec.loop import knn_scale
         from proxycodec.train import FitConfig, initial_anchors
 
         # SfM points on a 0.05 lattice (6 x 5 x 4 cells), each seen twice with a small jitter, and one far point
@@ -558,36 +559,129 @@ class TestFit:
         sfm = SimpleNamespace(points=pts, point_colors=None, bounds=bounds)
         assert FitConfig().voxel_rule == "auto"  # the scene and the run's length decide (SPEC.md section 5)
         # auto by the run's length in iterations: spacing from density_iters on, extent below
-        _, voxel, _, _ = initial_anchors(sfm, FitConfig(iters=1000), np.random.default_rng(0))
+        voxel = initial_anchors(sfm, FitConfig(iters=1000), np.random.default_rng(0)).voxel
         assert 0 < voxel < 0.0035 * 2
-        _, voxel, _, _ = initial_anchors(sfm, FitConfig(iters=999), np.random.default_rng(0))
+        voxel = initial_anchors(sfm, FitConfig(iters=999), np.random.default_rng(0)).voxel
         assert voxel == pytest.approx(2.0 / 128)
-        _, voxel, _, _ = initial_anchors(sfm, FitConfig(iters=999, density_iters=999), np.random.default_rng(0))
+        voxel = initial_anchors(sfm, FitConfig(iters=999, density_iters=999), np.random.default_rng(0)).voxel
         assert 0 < voxel < 0.0035 * 2
         with pytest.raises(ProxycodecError, match="density switch"):
             FitConfig(density_iters=0)
-        a, voxel, _, _ = initial_anchors(sfm, FitConfig(voxel_rule="extent"), np.random.default_rng(0))
+        ia = initial_anchors(sfm, FitConfig(voxel_rule="extent"), np.random.default_rng(0))
+        a, voxel = ia.positions, ia.voxel
         assert voxel == pytest.approx(2.0 / 128) and len(a) == len(np.unique(np.round(pts / voxel), axis=0))
-        a, voxel, _, _ = initial_anchors(sfm, FitConfig(voxel_rule="spacing"), np.random.default_rng(0))
+        ia = initial_anchors(sfm, FitConfig(voxel_rule="spacing"), np.random.default_rng(0))
+        a, voxel = ia.positions, ia.voxel
         # the median nearest-neighbour distance is the jitter (each lattice point has its twin): below the lattice step
         assert 0 < voxel < 0.0035 * 2 and len(a) > len(g)
         sparse = SimpleNamespace(points=np.concatenate([g, [[2.0, 2.0, 2.0]]]), point_colors=None, bounds=bounds)
-        a, voxel, _, _ = initial_anchors(sparse, FitConfig(voxel_rule="spacing"), np.random.default_rng(0))
+        ia = initial_anchors(sparse, FitConfig(voxel_rule="spacing"), np.random.default_rng(0))
+        a, voxel = ia.positions, ia.voxel
         assert voxel == pytest.approx(0.05) and len(a) == len(g) + 1  # one anchor per point: the scene decides
         # a cap subsamples the initial set (seeded); a given size wins over the rule
-        a1, _, _, _ = initial_anchors(sparse, FitConfig(voxel_rule="spacing", max_anchors=50), np.random.default_rng(1))
-        a2, _, _, _ = initial_anchors(sparse, FitConfig(voxel_rule="spacing", max_anchors=50), np.random.default_rng(1))
+        capped = FitConfig(voxel_rule="spacing", max_anchors=50)
+        a1 = initial_anchors(sparse, capped, np.random.default_rng(1)).positions
+        a2 = initial_anchors(sparse, capped, np.random.default_rng(1)).positions
         assert len(a1) == 50 and np.array_equal(a1, a2)
-        _, voxel, _, _ = initial_anchors(sparse, FitConfig(voxel_rule="spacing", voxel_size=0.3),
-                                         np.random.default_rng(0))
+        voxel = initial_anchors(sparse, FitConfig(voxel_rule="spacing", voxel_size=0.3), np.random.default_rng(0)
+                                ).voxel
         assert voxel == 0.3
+        # the Gaussians start as large as at the spacing density: the lattice's 0.05 against the 0.2 voxel's 8
+        # cube corners 0.2 apart (and the far point); Scaffold-GS's 1 at spacing, without SfM points, or as given
+        ia = initial_anchors(sparse, FitConfig(voxel_size=0.2), np.random.default_rng(0))
+        assert len(ia.positions) == 9 and ia.gaussian_scale == pytest.approx(0.25)
+        sc = ia.scalings()
+        np.testing.assert_allclose(sc[:, :3], np.log(knn_scale(ia.positions))[:, None].repeat(3, 1))
+        np.testing.assert_allclose(sc[:, 3:] - sc[:, :3], np.log(0.25))
+        assert initial_anchors(sparse, FitConfig(voxel_size=0.2, init_gaussian_scale=0.7), np.random.default_rng(0)
+                               ).gaussian_scale == 0.7
+        assert initial_anchors(sparse, FitConfig(voxel_rule="spacing"), np.random.default_rng(0)).gaussian_scale == 1
+        with pytest.raises(ProxycodecError, match="initial Gaussian scale"):
+            FitConfig(init_gaussian_scale=0.0)
         # no SfM points (Blender): random points in the bounds, where spacing means nothing: the extent rule
         blender = SimpleNamespace(points=None, point_colors=None, bounds=bounds)
-        _, voxel, _, _ = initial_anchors(blender, FitConfig(voxel_rule="spacing", init_points=300),
-                                         np.random.default_rng(0))
+        voxel = initial_anchors(blender, FitConfig(voxel_rule="spacing", init_points=300), np.random.default_rng(0)
+                                ).voxel
         assert voxel == pytest.approx(2.0 / 128)
+        ia = initial_anchors(blender, FitConfig(voxel_size=0.5, init_points=300), np.random.default_rng(0))
+        assert ia.gaussian_scale == 1 and ia.colors is None
         with pytest.raises(ProxycodecError, match="voxel rule"):
             FitConfig(voxel_rule="median")
+
+
+    def test_cell_means_average_each_anchors_points(self):
+        from proxycodec.train import cell_means, voxelise
+
+        pts = np.array([[0.0, 0, 0], [0.04, 0, 0], [1.0, 0, 0], [0.0, 2.0, 0], [1.02, 0, 0]])
+        cols = np.array([[255, 0, 0], [0, 0, 255], [10, 20, 30], [0, 255, 0], [30, 40, 50]], dtype=np.float64)
+        anchors = voxelise(pts, 0.1)
+        got = cell_means(pts, cols, 0.1, anchors)
+        want = {(0, 0, 0): [127.5, 0, 127.5], (10, 0, 0): [20, 30, 40], (0, 20, 0): [0, 255, 0]}
+        for a, c in zip(anchors, got):
+            np.testing.assert_allclose(c, want[tuple(np.round(a / 0.1).astype(int))])
+        # a subsampled set (``max_anchors``), in float32 as the trainer holds it; one value per point
+        sub = anchors[[2, 0]].astype(np.float32).astype(np.float64)
+        np.testing.assert_allclose(cell_means(pts, cols, 0.1, sub), got[[2, 0]])
+        np.testing.assert_allclose(cell_means(pts, cols[:, 0], 0.1, sub), got[[2, 0], 0])
+
+    def test_color_init_fits_the_colours_and_keeps_the_other_heads(self):
+        from proxycodec.decoder import DecoderConfig, GaussianDecoder
+        from proxycodec.train import fit_initial_colors
+
+        torch.manual_seed(0)
+        dec = GaussianDecoder(DecoderConfig(scene_center=(0.0, 0.0, 0.0), scene_radius=2.0))
+        g = torch.Generator().manual_seed(1)
+        pos = torch.rand(64, 3, generator=g) * 2 - 1
+        target = torch.rand(64, 3, generator=g) * 0.8 + 0.1
+        cams = torch.tensor([[4.0, 0, 0], [0, 4.0, 0], [0, 0, 4.0], [-3.0, 2, 1]])
+        feats = torch.zeros(64, dec.config.feat_dim)
+        x0 = dec.mlp_input(pos, feats, cams[0], 1.0)[1]
+        op0, cov0 = torch.tanh(dec.mlp_opacity(x0)), dec.mlp_cov(x0)
+        before, after = fit_initial_colors(dec, pos, feats, target, cams, 150, 0.01, torch.Generator().manual_seed(0))
+        assert before > 0.15 and after < 0.03 and feats.abs().sum() > 0  # the features were written in place
+        with torch.no_grad():  # the decoder's own forward, from a camera it trained with and from a new one
+            for cam in (cams[3], torch.tensor([0.0, -4.0, 1.0])):
+                ng = dec(pos, feats, torch.zeros(64, 10, 3), torch.zeros(64, 6), cam, 1.0)
+                assert (ng.colors - target[ng.anchor_index]).abs().mean() < 0.05
+            x = dec.mlp_input(pos, feats, cams[0], 1.0)[1]
+            assert (torch.tanh(dec.mlp_opacity(x)) - op0).abs().mean() < 0.05
+            assert (dec.mlp_cov(x) - cov0).abs().mean() < 0.05
+
+    def test_fit_starts_from_the_sfm_colours(self, data, tmp_path):
+        """With SfM point colours, ``fit`` first fits the anchors' colours to them (on the clock; ``color_init_steps``
+        0 or no colours: zero features, as Scaffold-GS), and a resumed run, which does not repeat it, ends where an
+        uninterrupted one does."""
+        from dataclasses import replace
+
+        from proxycodec.train import Trainer, fit
+
+        lo, hi = data.bounds
+        rng = np.random.default_rng(0)
+        pts = (lo + (hi - lo) * rng.uniform(0.2, 0.8, (300, 3))).astype(np.float32)
+        cols = np.tile(np.array([[200, 40, 90]], np.uint8), (300, 1))
+        sfm = replace(data, points=pts, point_colors=cols)
+        logs = []
+        cfg = small_config(iters=1, voxel_rule="extent")
+        res = fit(sfm, tmp_path / "a.ply", cfg, dataset_root="tiny", log=logs.append)
+        line = next(s for s in logs if s.startswith("colour init"))
+        assert float(line.split("->")[1].split()[0]) < 0.05
+        assert res.history[0]["seconds"] > float(line.split(",")[-1].split()[0]) - 0.05  # on the clock
+        tr = Trainer(sfm, cfg, "tiny")
+        tr.color_init()
+        cam = sfm.cameras[sfm.train_indices[0]]
+        ng = tr.decoder(tr.anchors.positions, tr.anchors.features, tr.anchors.offsets, tr.anchors.scalings,
+                        torch.as_tensor(cam.center, dtype=torch.float32), 1.0)
+        assert ng.count and (ng.colors - torch.tensor([200, 40, 90]) / 255.0).abs().max() < 0.1
+        for off in (Trainer(sfm, replace(cfg, color_init_steps=0), "tiny"), Trainer(data, cfg, "tiny")):
+            off.color_init()
+            assert off.elapsed == 0 and not off.anchors.features.detach().any()
+        # determinism and resume
+        cfg = small_config(iters=24, voxel_rule="extent")
+        with pytest.raises(KeyboardInterrupt):
+            fit(sfm, tmp_path / "r.ply", cfg, dataset_root="tiny", log=lambda s: None, stop_after=14)
+        fit(sfm, tmp_path / "r.ply", cfg, dataset_root="tiny", log=lambda s: None, resume=True)
+        fit(sfm, tmp_path / "u.ply", cfg, dataset_root="tiny", log=lambda s: None)
+        assert (tmp_path / "r.ply").read_bytes() == (tmp_path / "u.ply").read_bytes()
 
 
 # ------------------------------------------------------------------------------------------------ CLI
