@@ -118,7 +118,8 @@ class GaussianDecoder(nn.Module):
     def mlp_input(self, positions: torch.Tensor, features: torch.Tensor, camera_center: torch.Tensor, xi: float
                   ) -> tuple[torch.Tensor, torch.Tensor]:
         """-> (anchor - camera [M, 3], the MLPs' input [M, F + 4]: embedded feature, view direction, distance in
-        the MLPs' units). Each MLP reads it whole or without the distance (``mlp_inputs``)."""
+        the MLPs' units). Each MLP reads it whole or without the distance (``mlp_inputs``). ``camera_center``: [3],
+        or [M, 3], a camera per anchor (``train.fit_initial_colors``)."""
         cfg = self.config
         f_hat = self.embed(positions, features, xi)
         view = positions - camera_center

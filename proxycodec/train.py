@@ -18,6 +18,7 @@ Checkpoints and outputs are our own containers (raw arrays + JSON), written atom
 
 from __future__ import annotations
 
+import functools
 import math
 import os
 import shutil
@@ -389,11 +390,10 @@ def fit_initial_colors(decoder: GaussianDecoder, positions: torch.Tensor, featur
     cfg = decoder.config
     n_in = cfg.mlp_inputs()
 
-    def heads(x: torch.Tensor):  # each MLP's input as ``GaussianDecoder.forward`` cuts it (``mlp_inputs``)
-        def cut(name):
-            return x[:, :n_in[name]]
-        return (torch.sigmoid(decoder.mlp_color(cut("mlp_color"))),
-                torch.tanh(decoder.mlp_opacity(cut("mlp_opacity"))), decoder.mlp_cov(cut("mlp_cov")))
+    def heads(f: torch.Tensor, cams: torch.Tensor):  # the three MLPs' outputs, each on the input it reads
+        x = decoder.mlp_input(positions, f, cams, 1.0)[1]
+        return (torch.sigmoid(decoder.mlp_color(x[:, :n_in["mlp_color"]])),
+                torch.tanh(decoder.mlp_opacity(x[:, :n_in["mlp_opacity"]])), decoder.mlp_cov(x[:, :n_in["mlp_cov"]]))
 
     M = positions.shape[0]
     f = features.detach().clone().requires_grad_(True)
@@ -404,12 +404,9 @@ def fit_initial_colors(decoder: GaussianDecoder, positions: torch.Tensor, featur
     for k in range(steps + 1):
         cams = camera_centers[torch.randint(len(camera_centers), (M,), generator=generator,
                                             device=generator.device)]
-        view = positions - cams
-        dist = view.norm(dim=1, keepdim=True)
-        tail = torch.cat([view / dist.clamp_min(1e-12), dist / cfg.length_unit], -1)
         with torch.no_grad():
-            _, o0, c0 = heads(torch.cat([decoder.embed(positions, features, 1.0), tail], -1))
-        color, o, c = heads(torch.cat([decoder.embed(positions, f, 1.0), tail], -1))
+            _, o0, c0 = heads(features, cams)
+        color, o, c = heads(f, cams)
         err = (color - tgt).square().mean()
         if k in (0, steps):  # read back twice only (a GPU would wait at each)
             rmse.append(float(err.detach().sqrt()))
@@ -433,12 +430,13 @@ def density_rule(cfg: FitConfig, expected_iters: float | None = None) -> str:
     return "extent" if n is not None and n < cfg.density_iters else "spacing"
 
 
-def initial_voxel(pts: np.ndarray, extent: float, cfg: FitConfig, has_sfm: bool) -> float:
-    """The anchor voxel: ``cfg.voxel_size`` if given, else by ``cfg.voxel_rule`` (see ``FitConfig``)."""
+def initial_voxel(extent: float, cfg: FitConfig, spacing: Callable[[], float]) -> float:
+    """The anchor voxel: ``cfg.voxel_size`` if given, else by ``cfg.voxel_rule`` (see ``FitConfig``). ``spacing()``:
+    the SfM points' ``point_spacing``, 0 without SfM points (called only where the rule needs it)."""
     if cfg.voxel_size > 0:
         return float(cfg.voxel_size)
-    if density_rule(cfg) == "spacing" and has_sfm and (spacing := point_spacing(pts)) > 0:
-        return spacing
+    if density_rule(cfg) == "spacing" and (s := spacing()) > 0:
+        return s
     return extent / cfg.voxel_divisions
 
 
@@ -465,7 +463,9 @@ def initial_anchors(data, cfg: FitConfig, rng: np.random.Generator) -> InitialAn
     """The anchors of a new fit from the dataset's points (``initial_points``) voxelised. With ``cfg.max_anchors``, a
     larger voxelised set is subsampled to it (at random, seeded)."""
     pts, colors, bounds, extent = initial_points(data, cfg.init_points, rng, "anchors")
-    voxel = initial_voxel(pts, extent, cfg, has_sfm_points(data))
+    # a k-d tree over every point: built at most once, for the voxel rule and the Gaussians' scale
+    spacing = functools.cache(lambda: point_spacing(pts) if has_sfm_points(data) else 0.0)
+    voxel = initial_voxel(extent, cfg, spacing)
     anchors = voxelise(pts, voxel)
     if cfg.max_anchors is not None and len(anchors) > cfg.max_anchors:
         anchors = anchors[np.sort(rng.choice(len(anchors), cfg.max_anchors, replace=False))]
@@ -477,8 +477,8 @@ def initial_anchors(data, cfg: FitConfig, rng: np.random.Generator) -> InitialAn
     scale = cfg.init_gaussian_scale
     if scale is None:
         scale = 1.0
-        if has_sfm_points(data) and (spacing := point_spacing(pts)) > 0 and spacing < voxel:
-            scale = min(1.0, float(np.median(knn_scale(voxelise(pts, spacing))) / np.median(knn_scale(anchors))))
+        if 0 < (s := spacing()) < voxel:
+            scale = min(1.0, float(np.median(knn_scale(voxelise(pts, s))) / np.median(knn_scale(anchors))))
     return InitialAnchors(anchors, float(voxel), center, radius, colors, scale)
 
 
