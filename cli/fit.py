@@ -242,9 +242,11 @@ def _fit_explicit(dataset, out, run: dict, max_width, seed, images, test_every, 
 @supersample_option
 @background_option("the dataset's (its photos are composited on it) for a 3DGS PLY; an anchor scene or container "
                    "renders on the one it was trained on")
+@click.option("--json", "as_json", is_flag=True, help="Print the report (eval.json's content) as JSON on stdout "
+              "instead of the table.")
 @user_errors
 def eval_cmd(scene, dataset, out_dir, max_width, res, protocol, n_views, images, test_every, no_undistort, backend,
-             gate_mode, antialiased_mode, supersample, background) -> None:
+             gate_mode, antialiased_mode, supersample, background, as_json) -> None:
     """Evaluate SCENE on DATASET's test views at many resolutions: PSNR, SSIM, LPIPS, render time and Gaussians
     drawn per resolution.
 
@@ -297,7 +299,10 @@ def eval_cmd(scene, dataset, out_dir, max_width, res, protocol, n_views, images,
     rep.summary["antialiased"] = {"mode": antialiased_mode, "on": antialiased}
     out = Path(out_dir) if out_dir else Path(scene).with_name(Path(scene).stem + "_eval")
     paths = write_report(rep, out, crop_keys)
-    click.echo(report_markdown(rep))
-    click.echo("wrote " + ", ".join(str(p) for p in paths.values()))
-    json.dumps(rep.summary)  # summary must stay JSON-serialisable
+    if as_json:  # stdout holds the JSON alone; where the files went goes to stderr
+        click.echo(json.dumps(rep.to_json(), indent=2))
+        click.echo("wrote " + ", ".join(str(p) for p in paths.values()), err=True)
+    else:
+        click.echo(report_markdown(rep))
+        click.echo("wrote " + ", ".join(str(p) for p in paths.values()))
     sys.stdout.flush()

@@ -335,6 +335,10 @@ def test_cli_fit_explicit_then_eval(tiny_blender, tmp_path):
     assert all(math.isfinite(d["psnr"]) for d in rep["per_resolution"])
     assert rep["summary"]["anchors"] is None and rep["summary"]["gaussians_stored"] > 0
     assert "explicit Gaussians" in (tmp_path / "ev" / "eval.md").read_text()
+    r = CliRunner().invoke(cli, ["eval", str(out), str(tiny_blender), "-o", str(tmp_path / "evj"),
+                                 "--max-width", "20", "--res", "0.5,1.0", "--views", "1", "--json"])
+    assert r.exit_code == 0, r.output
+    assert json.loads(r.stdout) == json.loads((tmp_path / "evj" / "eval.json").read_text())  # stdout: the JSON alone
     r = CliRunner().invoke(cli, ["eval", str(out), str(tiny_blender), "-o", str(tmp_path / "ev2"),
                                  "--max-width", "20", "--res", "0.5,1.0", "--views", "1", "--supersample", "2"])
     assert r.exit_code == 0, r.output
