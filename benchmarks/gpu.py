@@ -14,8 +14,11 @@ Stages (benchmarks/README.md, "GPU runs"), in the order --stages gives (default:
      the projection alone, ours against gsplat's fused one, on the same Gaussians
   g  plain 3DGS (fit --explicit) on bonsai for stage d's budget, eval at 10%..100%, ours minus it per size, its SPZ
   n  encode of stage d's fit as fitted (the container stage g's SPZ is compared with), stats
+  v  conversion of stage g's bonsai 3DGS PLY (bonsai's training cameras in a cameras.json beside it) under
+     --budget-convert, then encode: iterations/s against the 2-core CPU's, the held-out PSNR against the source's
+     renders, bytes against the SPZ
   x  stage d at the former default density (fit --voxel-rule extent) for d's budget, eval at 10%..100%, stage d
-     minus it per size (stage d fits at the default, Scaffold-GS's density, since 2026-11-27)
+     minus it per size (stage d fits at the default, Scaffold-GS's density, since 2026-11-27), encode
 Stage d copies its fitted PLY and weights, and stage n its container, into OUT/fits/ (the PLY in parts of
 at most 15 MiB, the device tool's limit per file: `cat bonsai.ply.part* > bonsai.ply`), to be evaluated and
 encoded on a CPU.
@@ -60,6 +63,10 @@ CPU = {
                    "in 20:00 at 400 px (no 800 px figure on the rebuilt poses yet)"},
     "convert": {"iterations": 4000, "seconds": 583, "source": '"3DGS PLY conversion", conversion settings: spread, '
                 "context 4, no warm-up: training 583 s for 4000 iterations"},
+    "convert_bonsai": {"iterations": 8154, "seconds": 2400, "psnr_report": 28.62,
+                       "source": '"Against training time": bonsai\'s 600-s 3DGS PLY (299,732 Gaussians) converted for '
+                                 "2,400 s at 800 px: 8,154 iterations, 28.62 dB against the source's renders (4 "
+                                 "views); 40,752 iterations in 13,000 s: 29.76 (4 views), 29.99 in its own report"},
     "raster": {"ms": 196, "source": 'SPEC.md section 2 ("Rasterizer"): numba cpu backend, 100k Gaussians at '
                "400 px, forward + backward"},
 }
@@ -458,6 +465,48 @@ def stage_n(R: Run, rec: dict) -> None:
                       "(acceptance: >= 10x)")
 
 
+def stage_v(R: Run, rec: dict) -> None:
+    """Conversion on the device: stage g's bonsai 3DGS PLY as the teacher, with bonsai's training cameras at 800 px
+    in a cameras.json beside it (as ``convert.py`` sets it up on the CPU), converted with conversion's defaults under
+    ``--budget-convert``, then encoded as converted. Its own folder, so no other PLY finds that cameras.json."""
+    a, g = R.args, R.work / "bonsai_3dgs.ply"
+    if not g.exists():
+        raise Skip("no bonsai 3DGS PLY (stage g)")
+    from proxycodec.formats.datasets import load_dataset
+    from proxycodec.scaffold_gs import write_cameras_json
+
+    work = R.work / "convert_bonsai"
+    shutil.rmtree(work, ignore_errors=True)
+    work.mkdir()
+    src, conv = work / "point_cloud.ply", work / "converted_anchors.ply"
+    shutil.copyfile(g, src)
+    data = load_dataset(str(R.data("bonsai")), max_width=800, test_every=8)
+    cams = [data.cameras[i] for i in data.train_indices]
+    write_cameras_json(work / "cameras.json", cams[:9] if a.smoke else cams)  # smoke: 8 to train on, 1 held out
+    t = R.fit_budget(a.budget_convert, 40 if a.smoke else 150)  # encode and the report after it
+    r = R.cli("v_convert", ["convert", src, "-o", conv, "--time-budget", t, "--max-width", 64 if a.smoke else 800,
+                            "--background", "black", "--seed", a.seed, "--json"], t + 400)
+    c = rec["convert"] = dict(parse_fit(r), budget_s=t)
+    check(r)
+    j = json_out(r)
+    c.update({k: v for k, v in j.items() if k in ("cameras", "iterations", "seconds")})
+    rep = j["report"]["converted"]
+    c["report"] = {"psnr": rep["psnr"], "views": len(rep["views"]),
+                   "per_resolution": {f"{d['xi']:g}": d["psnr"] for d in rep["per_resolution"]},
+                   "source_psnr": j["report"]["source_direct"]["psnr"]}
+    it_s = c["iterations"] / max(c.get("train_seconds") or t, 1)
+    cpu = CPU["convert_bonsai"]
+    rec["vs_cpu"] = {"cpu_it_per_s": round(cpu["iterations"] / cpu["seconds"], 2),
+                     "ratio": round(it_s / (cpu["iterations"] / cpu["seconds"]), 2)}
+    rec["key"] = (f"convert {c['iterations']:,} it in {t} s = **{it_s:.2f} it/s**; held-out vs the source's renders "
+                  f"**{rep['psnr']:.2f} dB** ({len(rep['views'])} views)")
+    e = encode_kept(R, rec, "v_encode", conv)
+    rec["key"] += f"; encode {e['seconds']:.0f} s, {e['bytes']:,} B"
+    rec["cpu"] = f"{rec['vs_cpu']['cpu_it_per_s']} it/s: **{rec['vs_cpu']['ratio']:.1f}x**; {cpu['source']}"
+    if "spz_over_container" in rec:
+        rec["cpu"] += f"; SPZ of stage g's 3DGS / container: {rec['spz_over_container']}x (acceptance: >= 10x)"
+
+
 def stage_c(R: Run, rec: dict) -> None:
     a, ply, pxc, dist = R.args, R.work / "lego.ply", R.work / "lego.pxc", R.work / "lego_distill.pxc"
     if not ply.exists():
@@ -653,6 +702,7 @@ STAGES = {"a": ("pytest -m cuda", stage_a, lambda a: 300),
           "f": ("render, micro-benchmark", stage_f, lambda a: 150),
           "g": ("bonsai plain 3DGS at d's budget + eval", stage_g, lambda a: a.budget_bonsai + 200),
           "n": ("bonsai encode as fitted (stage d's fit)", stage_n, lambda a: 420),
+          "v": ("bonsai conversion of stage g's 3DGS PLY + encode", stage_v, lambda a: a.budget_convert + 420),
           "x": ("bonsai fit at the extent / 128 density, d's budget + eval + encode", stage_x,
                 lambda a: a.budget_bonsai + 260)}
 
@@ -688,6 +738,7 @@ def main(argv=None) -> int:
     ap.add_argument("--budget-lego", type=float, default=150.0, help="lego fit --time-budget, s")
     ap.add_argument("--budget-bonsai", type=float, default=120.0, help="bonsai fit --time-budget, s")
     ap.add_argument("--budget-explicit", type=float, default=60.0, help="stage e's 3DGS fit --time-budget, s")
+    ap.add_argument("--budget-convert", type=float, default=240.0, help="stage v's convert --time-budget, s")
     ap.add_argument("--stages", default="b,c,f,a,d,e", help="stages to run, in this order")
     ap.add_argument("--deadline", type=float, default=440.0,
                     help="total seconds, after which stages are skipped (the bootstrap took 135 s of a 600-s call on "
@@ -699,8 +750,8 @@ def main(argv=None) -> int:
     if bad := [k for k in keys if k not in STAGES]:
         ap.error(f"unknown stages {bad}; choose from {','.join(STAGES)}")
     if args.smoke:
-        args.budget_lego, args.budget_bonsai, args.budget_explicit = (
-            min(x, 10.0) for x in (args.budget_lego, args.budget_bonsai, args.budget_explicit))
+        args.budget_lego, args.budget_bonsai, args.budget_explicit, args.budget_convert = (
+            min(x, 10.0) for x in (args.budget_lego, args.budget_bonsai, args.budget_explicit, args.budget_convert))
     if args.threads:
         os.environ["PROXYCODEC_THREADS"] = str(args.threads)  # pytest, and torch in this process
     R = Run(args)
