@@ -14,6 +14,8 @@ Stages (benchmarks/README.md, "GPU runs"), in the order --stages gives (default:
      the projection alone, ours against gsplat's fused one, on the same Gaussians
   g  plain 3DGS (fit --explicit) on bonsai for stage d's budget, eval at 10%..100%, ours minus it per size, its SPZ
   n  encode of stage d's fit as fitted (the container stage g's SPZ is compared with), stats
+  p  torch.profiler over training steps in this process (ours in stage 1 and 2 at bonsai's density, 800 px; plain
+     3DGS): wall and device-busy ms per step, kernel launches, the operations with the most host and device time
   v  conversion of stage g's bonsai 3DGS PLY (bonsai's training cameras in a cameras.json beside it) under
      --budget-convert, then encode: iterations/s against the 2-core CPU's, the held-out PSNR against the source's
      renders, bytes against the SPZ
@@ -507,6 +509,83 @@ def stage_v(R: Run, rec: dict) -> None:
         rec["cpu"] += f"; SPZ of stage g's 3DGS / container: {rec['spz_over_container']}x (acceptance: >= 10x)"
 
 
+def profile_steps(step, n: int, dev) -> dict:
+    """``step`` run n times, timed (synchronised) and then under torch.profiler: wall ms per step, the device's busy
+    ms per step (its kernels' self time), kernel launches per step, and the operations with the most host and device
+    time. Busy much below wall: the host (Python, dispatch, synchronisations) sets the pace, not the GPU."""
+    import torch
+    from torch.autograd import DeviceType
+    from torch.profiler import ProfilerActivity, profile
+
+    cuda = dev.type == "cuda"
+
+    def sync():
+        if cuda:
+            torch.cuda.synchronize(dev)
+
+    for _ in range(3):  # warm-up: caches, allocator
+        step()
+    sync()
+    t = time.perf_counter()
+    for _ in range(n):
+        step()
+    sync()
+    wall = (time.perf_counter() - t) / n
+    acts = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if cuda else [])
+    with profile(activities=acts) as prof:
+        for _ in range(n):
+            step()
+        sync()
+    ka = prof.key_averages()
+
+    def dev_us(e):  # the attribute's name moved across torch versions
+        return getattr(e, "self_device_time_total", None) or getattr(e, "self_cuda_time_total", 0) or 0
+
+    kernels = [e for e in prof.events() if e.device_type == DeviceType.CUDA]  # kernels and copies on the device
+    busy = sum(e.time_range.elapsed_us() for e in kernels)
+
+    def top(key):
+        rows = sorted(ka, key=key, reverse=True)[:12]
+        return [{"op": e.key, "calls_per_step": round(e.count / n, 1), "ms_per_step": round(key(e) / n / 1e3, 3)}
+                for e in rows if key(e) > 0]
+
+    return {"steps": n, "wall_ms": round(wall * 1e3, 2), "device_busy_ms": round(busy / n / 1e3, 2),
+            "busy_fraction": round(busy / n / 1e3 / (wall * 1e3), 3) if cuda else None,
+            "kernels_per_step": round(len(kernels) / n, 1),
+            "top_host": top(lambda e: e.self_cpu_time_total), "top_device": top(dev_us) if cuda else []}
+
+
+def stage_p(R: Run, rec: dict) -> None:
+    """Where a training step's time goes: ``profile_steps`` over our anchor fit in stage 1 and in stage 2 (bonsai at
+    800 px, the scene's density, the defaults otherwise) and over plain 3DGS, in this process on the device."""
+    import torch
+    from proxycodec.explicit import ExplicitConfig, ExplicitTrainer
+    from proxycodec.formats.datasets import load_dataset
+    from proxycodec.train import FitConfig, Trainer
+
+    dev = torch.device("cuda" if R.args.device != "cpu" and torch.cuda.is_available() else "cpu")
+    smoke = R.args.smoke
+    data = load_dataset(str(R.data("bonsai")), max_width=100 if smoke else 800, test_every=8)
+    n, iters = (3, 40) if smoke else (20, 400)
+    t0 = time.monotonic()
+    ours = Trainer(data, FitConfig(iters=iters, seed=R.args.seed, voxel_rule="spacing"), device=dev)
+    for _ in range(10 if smoke else 50):
+        ours.train_step()
+    cases = rec["cases"] = {}
+    cases["ours, stage 1"] = dict(profile_steps(ours.train_step, n, dev), anchors=ours.anchors.num_anchors)
+    while ours.stage < 2:
+        ours.train_step()
+    cases["ours, stage 2"] = dict(profile_steps(ours.train_step, n, dev), anchors=ours.anchors.num_anchors)
+    del ours
+    tdgs = ExplicitTrainer(data, ExplicitConfig(iters=iters, seed=R.args.seed), device=dev)
+    for _ in range(10 if smoke else 50):
+        tdgs.train_step()
+    cases["3DGS (fit --explicit)"] = profile_steps(tdgs.train_step, n, dev)
+    rec["setup_and_steps_s"] = round(time.monotonic() - t0, 1)
+    rec["key"] = "; ".join(f"{k}: {c['wall_ms']} ms/step, device busy {c['device_busy_ms']} ms, "
+                           f"{c['kernels_per_step']:g} kernels" for k, c in cases.items())
+
+
 def stage_c(R: Run, rec: dict) -> None:
     a, ply, pxc, dist = R.args, R.work / "lego.ply", R.work / "lego.pxc", R.work / "lego_distill.pxc"
     if not ply.exists():
@@ -703,6 +782,7 @@ STAGES = {"a": ("pytest -m cuda", stage_a, lambda a: 300),
           "g": ("bonsai plain 3DGS at d's budget + eval", stage_g, lambda a: a.budget_bonsai + 200),
           "n": ("bonsai encode as fitted (stage d's fit)", stage_n, lambda a: 420),
           "v": ("bonsai conversion of stage g's 3DGS PLY + encode", stage_v, lambda a: a.budget_convert + 420),
+          "p": ("profile of training steps: ours stage 1 and 2, 3DGS", stage_p, lambda a: 240),
           "x": ("bonsai fit at the extent / 128 density, d's budget + eval + encode", stage_x,
                 lambda a: a.budget_bonsai + 260)}
 
