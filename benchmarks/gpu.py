@@ -21,7 +21,7 @@ Stages (benchmarks/README.md, "GPU runs"), in the order --stages gives (default:
      renders, bytes against the SPZ
   x  stage d at the former default density (fit --voxel-rule extent) for d's budget, eval at 10%..100%, stage d
      minus it per size (stage d fits at the default, Scaffold-GS's density, since 2026-11-27), encode
-Stage d copies its fitted PLY and weights, and stage n its container, into OUT/fits/ (the PLY in parts of
+Stage d copies its fitted PLY and weights, and stages n, v and x their containers, into OUT/fits/ (the PLY in parts of
 at most 15 MiB, the device tool's limit per file: `cat bonsai.ply.part* > bonsai.ply`), to be evaluated and
 encoded on a CPU.
 Each stage has its own wall-clock limit and the run a total deadline (later stages are then skipped); a failing
