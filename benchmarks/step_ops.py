@@ -1,6 +1,6 @@
 """What one training step dispatches: torch operations per iteration, by trainer and stage, and where they come from.
 
-    python benchmarks/step_ops.py [DATASET] [--max-width 60] [--steps 3] [--out benchmarks/results/step_ops]
+    python benchmarks/step_ops.py [DATASET] [--max-width 60] [--steps 3] [--timed 10] [--out DIR]
 
 On a GPU every dispatched operation is at least one kernel launch (~5-20 us of host time each), and every operation
 whose output size depends on the data (``nonzero``, boolean masks, ``.item()``) waits for the device to catch up. A
@@ -11,7 +11,9 @@ figures are counts, not timings.
 
 For our anchor fit in stage 1 and in stage 2 (its defaults, rate term included) and for ``fit --explicit``: the
 operations per step (every ``__torch_dispatch__`` call, backward included), those that synchronise on a GPU, and
-the source lines of proxycodec that dispatch the most (the backward pass is one line: ``loss.backward()``). Writes
+the source lines of proxycodec that dispatch the most (the backward pass is one line: ``loss.backward()``), and the
+median wall time of ``--timed`` uncounted steps (at 60 px mostly the host's dispatch; at 800 px the numba rasterizer's,
+which moves from run to run on a shared machine by more than a step's torch side). Writes
 ``step_ops.json`` (machine, versions, seed, every count, peak RSS) and prints the table. DATASET defaults to bonsai
 in ``../shared/data`` (skipped with a reason when absent); any dataset ``fit`` reads will do.
 """
@@ -22,6 +24,7 @@ import argparse
 import collections
 import json
 import resource
+import statistics
 import sys
 import time
 import traceback
@@ -68,11 +71,22 @@ def count_ops(step, n: int) -> dict:
             "seconds_per_step_counting": round(seconds, 4)}
 
 
+def time_steps(step, n: int) -> float:
+    """Median wall seconds of ``n`` uncounted steps (at this tiny size, mostly the host's dispatch of each op)."""
+    times = []
+    for _ in range(n):
+        t = time.perf_counter()
+        step()
+        times.append(time.perf_counter() - t)
+    return round(statistics.median(times), 5)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("dataset", nargs="?", default=str(DEFAULT_DATA))
     ap.add_argument("--max-width", type=int, default=60)
     ap.add_argument("--steps", type=int, default=3, help="steps counted per case (after 2 warm-up steps)")
+    ap.add_argument("--timed", type=int, default=10, help="uncounted steps timed per case (median)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default=str(HERE / "results" / "step_ops"))
     a = ap.parse_args(argv)
@@ -94,26 +108,29 @@ def main(argv=None) -> int:
     for _ in range(2):
         ours.train_step()
     res["cases"]["ours, stage 1"] = count_ops(ours.train_step, a.steps)
+    res["cases"]["ours, stage 1"]["seconds_per_step"] = time_steps(ours.train_step, min(a.timed, 8))
     while ours.stage < 2:
         ours.train_step()
     ours.train_step()
     res["cases"]["ours, stage 2"] = count_ops(ours.train_step, a.steps)
+    res["cases"]["ours, stage 2"]["seconds_per_step"] = time_steps(ours.train_step, a.timed)
     res["cases"]["ours, stage 2"]["anchors"] = ours.anchors.num_anchors
     tdgs = ExplicitTrainer(data, ExplicitConfig(iters=40, seed=a.seed))
     for _ in range(2):
         tdgs.train_step()
     res["cases"]["3DGS (fit --explicit)"] = count_ops(tdgs.train_step, a.steps)
+    res["cases"]["3DGS (fit --explicit)"]["seconds_per_step"] = time_steps(tdgs.train_step, a.timed)
     res["peak_rss_mb"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "step_ops.json.tmp").write_text(json.dumps(res, indent=2))
     (out / "step_ops.json.tmp").replace(out / "step_ops.json")
-    print("| case | ops / step | of them not views | syncing / step | top source lines (ops / step) |\n"
-          "|---|---:|---:|---:|---|")
+    print("| case | ops / step | of them not views | syncing / step | ms / step (median) "
+          "| top source lines (ops / step) |\n|---|---:|---:|---:|---:|---|")
     for name, c in res["cases"].items():
         lines = "; ".join(f"{k} {v:g}" for k, v in list(c["top_lines"].items())[:5])
         print(f"| {name} | {c['ops_per_step']:,.0f} | {c['kernel_ops_per_step']:,.0f} | {c['syncing_per_step']:g} | "
-              f"{lines} |")
+              f"{1000 * c['seconds_per_step']:.1f} | {lines} |")
     print(f"wrote {out / 'step_ops.json'}; peak RSS {res['peak_rss_mb']} MB")
     return 0
 

@@ -10,6 +10,7 @@ both encoder and decoder evaluate: rounding it only moves probabilities (a few b
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -284,6 +285,67 @@ class RateModel(torch.nn.Module):
         m = m + (m * (math.log(2) / LEVEL_DIVISOR)).detach() * (u - u.detach())
         return step * m[:, None]
 
+    def symbol_bits(self, y_f: torch.Tensor, y_s: torch.Tensor, y_o: torch.Tensor, P_rows: torch.Tensor,
+                    L_rows: torch.Tensor, wp: float = 1.0, wl: float = 1.0) -> torch.Tensor:
+        """The bits of the (noisy, continuous) symbols ``y_f`` [M, F], ``y_s`` [M, 6], ``y_o`` [M, 3K] of the
+        proxies ``P_rows`` and the leaves ``L_rows`` under the float nets, in the passes the decoder makes: wp x
+        the proxies' sum + wl x the leaves'. The contexts (nets' inputs) are detached.
+
+        Each net runs once, over the stacked rows of all its passes (the feature groups; proxies and leaves), and
+        every symbol goes through one ``laplace_bits`` call: a pass's own call was ~40 operations forward and
+        backward, each a kernel launch on a GPU, and a row's outputs do not depend on the rows beside it
+        (``tests/test_entropy.py`` holds the pass-by-pass reference)."""
+
+        def clip(v):
+            return v.detach().clamp(-ent.ACT_MAX, ent.ACT_MAX)
+
+        F = y_f.shape[1]
+        nP, nL = len(P_rows), len(L_rows)
+        G, FG = -(-F // ent.FEATURE_GROUP), ent.FEATURE_GROUP
+        yp = y_f[P_rows]
+        # group g's context: the earlier groups' (clipped) values, the later ones 0, and its one-hot 64
+        known = torch.where(self._group_known(G, F, yp.device), clip(yp)[None], 0.0)  # [G, nP, F]
+        head = torch.cat([self.posn[P_rows][None].expand(G, -1, -1), known,
+                          self._group_onehot(G, yp.device, yp.dtype).expand(-1, nP, -1)], 2)
+        mu, lvl = self.nets["features"](head.reshape(G * nP, -1))
+        mu, lvl = mu.reshape(G, nP, FG), lvl.reshape(G, nP, FG)
+        if F == G * FG:
+            terms_p = [(yp.reshape(nP, G, FG).transpose(0, 1), mu, lvl)]
+        else:  # a short last group: its outputs beyond its channels are not symbols
+            terms_p = [(yp[:, g * FG:(g + 1) * FG], mu[g, :, :min(FG, F - g * FG)], lvl[g, :, :min(FG, F - g * FG)])
+                       for g in range(G)]
+        rows = torch.cat([P_rows, L_rows])
+        src = torch.cat([P_rows, self.near[L_rows]])
+        flag = torch.cat([y_s.new_zeros(nP, 1), y_s.new_full((nL, 1), float(ent.FLAG))])
+        head = [clip(y_f)[src], self.posn[rows], flag, self.rel[rows]]
+        ref_s = torch.cat([y_s.new_zeros(nP, y_s.shape[1]), y_s[src[nP:]].detach()])
+        ref_o = torch.cat([y_o.new_zeros(nP, y_o.shape[1]), y_o[src[nP:]].detach()])
+        y_sr, y_or = y_s[rows], y_o[rows]
+        mu_s, lvl_s = self.nets["scalings"](torch.cat(head + [clip(ref_s)], 1), ref_s)
+        mu_o, lvl_o = self.nets["offsets"](torch.cat(head + [clip(y_sr), clip(ref_o)], 1), ref_o)
+        terms_p += [(y_sr[:nP], mu_s[:nP], lvl_s[:nP]), (y_or[:nP], mu_o[:nP], lvl_o[:nP])]
+        terms_l = [(y_sr[nP:], mu_s[nP:], lvl_s[nP:]), (y_or[nP:], mu_o[nP:], lvl_o[nP:])] if nL else []
+        flat = [torch.cat([t[i].reshape(-1) for t in terms_p + terms_l]) for i in range(3)]
+        b = laplace_bits(*flat)
+        n_p = sum(t[0].numel() for t in terms_p)
+        return wp * b[:n_p].sum() + wl * b[n_p:].sum()
+
+    @staticmethod
+    @functools.lru_cache(maxsize=16)
+    def _group_known(G: int, F: int, device: torch.device) -> torch.Tensor:
+        """[G, 1, F] bool: feature group g's context, the channels of the groups before it (made once per device,
+        a normal tensor even under ``torch.inference_mode``, as ``decoder._frequencies``)."""
+        with torch.inference_mode(False), torch.no_grad():
+            c = torch.arange(F, device=device)
+            return (c[None, :] < (torch.arange(G, device=device) * ent.FEATURE_GROUP)[:, None])[:, None, :]
+
+    @staticmethod
+    @functools.lru_cache(maxsize=16)
+    def _group_onehot(G: int, device: torch.device, dtype: torch.dtype) -> torch.Tensor:
+        """[G, 1, G]: feature group g's one-hot input (64 at g)."""
+        with torch.inference_mode(False), torch.no_grad():
+            return (torch.eye(G, device=device, dtype=dtype) * 64)[:, None, :]
+
     @torch.no_grad()
     def rounded(self, features: torch.Tensor, offsets: torch.Tensor, scalings: torch.Tensor):
         """(features, offsets, scalings) on their grids: what training renders and the container stores."""
@@ -296,7 +358,6 @@ class RateModel(torch.nn.Module):
 
     def forward(self, features: torch.Tensor, offsets: torch.Tensor, scalings: torch.Tensor, generator=None):
         M, K = offsets.shape[:2]
-        F = features.shape[1]
         st = {k: self.step_of(k) for k in self.log_step}
         o2 = offsets.reshape(M, 3 * K)
         v_f = (features - self.mid_features) / st["features"]  # continuous symbols; features: the proxies' rows
@@ -313,9 +374,6 @@ class RateModel(torch.nn.Module):
         y_s = v_s + torch.rand(v_s.shape, generator=generator, device=v_s.device) - 0.5
         y_o = v_o + torch.rand(v_o.shape, generator=generator, device=v_o.device) - 0.5
 
-        def clip(v):
-            return v.detach().clamp(-ent.ACT_MAX, ent.ACT_MAX)
-
         def pick(idx):
             n = len(idx)
             if n <= self.sample:
@@ -323,37 +381,7 @@ class RateModel(torch.nn.Module):
             sel = torch.randperm(n, generator=generator, device=idx.device)[:self.sample]
             return idx[sel], n / self.sample
 
-        # (y, mu, level) of every symbol group, proxies' first: one laplace_bits call over all of them (per group a
-        # call was ~70 operations, forward and backward, each a kernel launch on a GPU); the weights wp, wl scale
-        # the proxies' and the leaves' sums, so each symbol's gradient is what its own call gave
-        terms_p, terms_l = [], []
         P_rows, wp = pick(self.proxies)
         L_rows, wl = pick(self.leaves)
-        n_groups = -(-F // ent.FEATURE_GROUP)
-        yp = y_f[P_rows]
-        for g in range(n_groups):
-            c0, c1 = g * ent.FEATURE_GROUP, min(F, (g + 1) * ent.FEATURE_GROUP)
-            known = torch.zeros_like(yp)
-            known[:, :c0] = clip(yp[:, :c0])
-            onehot = yp.new_zeros(len(P_rows), n_groups)
-            onehot[:, g] = 64
-            mu, lvl = self.nets["features"](torch.cat([self.posn[P_rows], known, onehot], 1))
-            terms_p.append((yp[:, c0:c1], mu[:, :c1 - c0], lvl[:, :c1 - c0]))
-        f_ctx = clip(y_f)
-        for rows, terms, leaf in ((P_rows, terms_p, False), (L_rows, terms_l, True)):
-            if not len(rows):
-                continue
-            src = self.near[rows] if leaf else rows
-            head = [f_ctx[src], self.posn[rows], y_s.new_full((len(rows), 1), float(ent.FLAG if leaf else 0)),
-                    self.rel[rows]]
-            ref_s = y_s[src].detach() if leaf else y_s.new_zeros(len(rows), y_s.shape[1])
-            mu, lvl = self.nets["scalings"](torch.cat(head + [clip(ref_s)], 1), ref_s)
-            terms.append((y_s[rows], mu, lvl))
-            ref_o = y_o[src].detach() if leaf else y_o.new_zeros(len(rows), y_o.shape[1])
-            mu, lvl = self.nets["offsets"](torch.cat(head + [clip(y_s[rows]), clip(ref_o)], 1), ref_o)
-            terms.append((y_o[rows], mu, lvl))
-        flat = [torch.cat([t[i].reshape(-1) for t in terms_p + terms_l]) for i in range(3)]
-        b = laplace_bits(*flat)
-        n_p = sum(t[0].numel() for t in terms_p)
-        bits = wp * b[:n_p].sum() + wl * b[n_p:].sum()
+        bits = self.symbol_bits(y_f, y_s, y_o, P_rows, L_rows, wp, wl)
         return q_f, q_o, q_s, bits

@@ -41,8 +41,9 @@ from .weights import load_state_arrays, state_arrays
 
 __all__ = [
     "default_cell_size", "select_proxies", "nearest_proxy", "nearest_proxies", "nearest_column", "PredictorConfig",
-    "ResidualPredictor", "predictor_inputs", "predictor_geometry", "recon_loss", "offset_recon_loss", "TrainConfig",
-    "TrainResult", "train_predictor", "proxies_per_cell", "PROXY_SELECTIONS", "check_proxy_selection", "RECON_LOSSES",
+    "ResidualPredictor", "predictor_inputs", "predictor_geometry", "proxy_encodings", "recon_loss",
+    "offset_recon_loss", "TrainConfig", "TrainResult", "train_predictor", "proxies_per_cell", "PROXY_SELECTIONS",
+    "check_proxy_selection", "RECON_LOSSES",
     "PREDICTOR_KINDS", "predictor_neighbours", "ProxyLeafConfig", "ProxyLeafMLP", "predictor_from_json",
     "load_fitted_predictor",
 ]
@@ -228,22 +229,47 @@ def offset_recon_loss(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     return ((pred - target) ** 2).sum((1, 2)).mean()
 
 
-def predictor_geometry(positions: torch.Tensor, features: torch.Tensor, near: torch.Tensor, leaves: torch.Tensor,
-                       cfg: PredictorConfig) -> torch.Tensor:
-    """Everything the predictor sees besides the nearest proxy's feature, for the anchors ``leaves``: the encoding
-    of the nearest proxy -> leaf vector; with ``cfg.context`` > 1, per further proxy j (``near`` [M, context],
-    nearest first) its feature minus the nearest's and the encoding of its own vector to the leaf."""
+def _context_columns(near: torch.Tensor, cfg: PredictorConfig) -> torch.Tensor:
+    """``near`` as [M, >= context] (an [M] nearest-proxy column is [M, 1]), checked against ``cfg.context``."""
     if near.dim() == 1:
         near = near[:, None]
     if near.shape[1] < cfg.context:
         raise ProxycodecError(f"the predictor sees {cfg.context} proxies per leaf; got {near.shape[1]}")
+    return near
+
+
+def proxy_encodings(positions: torch.Tensor, near: torch.Tensor, cfg: PredictorConfig,
+                    rows: torch.Tensor | None = None) -> torch.Tensor:
+    """[R, context, n_geo], without gradient: for the anchors ``rows`` (default all), the encoding of the vector from
+    each of their ``cfg.context`` proxies (``near``, nearest first) to them. It depends on positions and neighbours
+    alone, so the trainer's stage 2, where both are fixed, computes it once (``predictor_geometry``'s
+    ``encodings``) instead of ~10 operations per proxy and call."""
+    near = _context_columns(near, cfg)
+    with torch.no_grad():
+        k = near if rows is None else near[rows]
+        p = positions if rows is None else positions[rows]
+        return torch.stack([predictor_inputs(p, positions[k[:, j]], cfg.dist_ref, cfg.pe_dist_freqs,
+                                             cfg.pe_dir_freqs) for j in range(cfg.context)], 1)
+
+
+def predictor_geometry(positions: torch.Tensor, features: torch.Tensor, near: torch.Tensor, leaves: torch.Tensor,
+                       cfg: PredictorConfig, encodings: torch.Tensor | None = None) -> torch.Tensor:
+    """Everything the predictor sees besides the nearest proxy's feature, for the anchors ``leaves``: the encoding
+    of the nearest proxy -> leaf vector; with ``cfg.context`` > 1, per further proxy j (``near`` [M, context],
+    nearest first) its feature minus the nearest's and the encoding of its own vector to the leaf. ``encodings``:
+    ``proxy_encodings`` of every anchor, when the caller holds it (rows taken from it; else computed)."""
+    near = _context_columns(near, cfg)
     k = near[leaves]
-    pl = positions[leaves]
-    parts = [predictor_inputs(pl, positions[k[:, 0]], cfg.dist_ref, cfg.pe_dist_freqs, cfg.pe_dir_freqs)]
+    if encodings is None:
+        pl = positions[leaves]
+        enc = [predictor_inputs(pl, positions[k[:, j]], cfg.dist_ref, cfg.pe_dist_freqs, cfg.pe_dir_freqs)
+               for j in range(cfg.context)]
+    else:
+        enc = encodings[leaves].unbind(1)
+    parts = [enc[0]]
     f0 = gather_rows(features, k[:, 0]) if cfg.context > 1 else None
     for j in range(1, cfg.context):
-        parts.append(gather_rows(features, k[:, j]) - f0)
-        parts.append(predictor_inputs(pl, positions[k[:, j]], cfg.dist_ref, cfg.pe_dist_freqs, cfg.pe_dir_freqs))
+        parts += [gather_rows(features, k[:, j]) - f0, enc[j]]
     return torch.cat(parts, -1) if len(parts) > 1 else parts[0]
 
 
@@ -280,11 +306,12 @@ class ResidualPredictor(nn.Module):
         return feats, offs
 
     def predict(self, positions: torch.Tensor, features: torch.Tensor, nearest: torch.Tensor,
-                leaves: torch.Tensor, offsets: torch.Tensor | None = None):
+                leaves: torch.Tensor, offsets: torch.Tensor | None = None, encodings: torch.Tensor | None = None):
         """Predictions for the anchors ``leaves`` given every anchor's position, the proxies' features/offsets
-        (rows of leaves are ignored) and ``nearest`` (``nearest_proxy``)."""
+        (rows of leaves are ignored) and ``nearest`` (``nearest_proxy``); ``encodings``: ``proxy_encodings`` of
+        every anchor, where the caller keeps it."""
         cfg = self.config
-        geo = predictor_geometry(positions, features, nearest, leaves, cfg)
+        geo = predictor_geometry(positions, features, nearest, leaves, cfg, encodings)
         k = nearest_column(nearest)[leaves]
         return self(gather_rows(features, k), geo,
                     gather_rows(offsets, k) if (offsets is not None and cfg.predict_offsets) else None)
@@ -425,7 +452,8 @@ class ProxyLeafMLP(nn.Module):
         return self.head(x), None
 
     def predict(self, positions: torch.Tensor, features: torch.Tensor, nearest: torch.Tensor,
-                leaves: torch.Tensor, offsets: torch.Tensor | None = None):
+                leaves: torch.Tensor, offsets: torch.Tensor | None = None, encodings: torch.Tensor | None = None):
+        """As ``ResidualPredictor.predict``; ``encodings`` is not used (this one encodes absolute positions)."""
         k = nearest_column(nearest)[leaves]
         return self(gather_rows(features, k), self.geometry(positions[leaves], positions[k]))
 

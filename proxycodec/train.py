@@ -47,7 +47,8 @@ from .netconfig import PredictorConfig
 from .optim import Adam, exp_lr
 from .proxy import (
     PREDICTOR_KINDS, RECON_LOSSES, ProxyLeafConfig, TrainConfig, check_proxy_selection, default_cell_size,
-    predictor_neighbours, offset_recon_loss, predictor_from_json, recon_loss, select_proxies, train_predictor,
+    predictor_neighbours, offset_recon_loss, predictor_from_json, proxy_encodings, recon_loss, select_proxies,
+    train_predictor,
 )
 from .render.project import GateConfig
 from .scene import AnchorScene, point_spacing
@@ -539,6 +540,7 @@ class Trainer(TrainingRun):
         self.predictor = None
         self.proxy_mask: torch.Tensor | None = None  # [M] bool
         self.nearest: torch.Tensor | None = None  # [M, context] long
+        self.encodings: torch.Tensor | None = None  # [M, context, n_geo]: proxy.proxy_encodings, stage 2
         self.leaf_target: torch.Tensor | None = None  # [L, F] stage-1 features of the leaves
         self.leaf_offset_target: torch.Tensor | None = None  # [L, K, 3] their stage-1 offsets (predict_offsets)
         self.leaves: torch.Tensor | None = None  # [L] long
@@ -668,7 +670,7 @@ class Trainer(TrainingRun):
         feats, offs = base_f, (base_o if po or rounded is not None else None)
         if leaf_vis.numel():
             pred, pred_o = self.predictor.predict(a.positions, base_f, self.nearest, leaf_vis,
-                                                  base_o if po else None)
+                                                  base_o if po else None, self.encodings)
             feats = base_f.index_put((leaf_vis,), pred)
             if po:
                 offs = base_o.index_put((leaf_vis,), pred_o)
@@ -681,7 +683,7 @@ class Trainer(TrainingRun):
         if not with_recon:
             return feats, offs, zero
         pred_s, pred_so = self.predictor.predict(a.positions, a.features, self.nearest, self.leaves[sel],
-                                                 a.offsets if po else None)
+                                                 a.offsets if po else None, self.encodings)
         loss = recon_loss(pred_s, self.leaf_target[sel], kind=self.cfg.recon_loss)
         if po:  # the offset term of proxy.train_predictor (offset_weight 1)
             loss = loss + offset_recon_loss(pred_so, self.leaf_offset_target[sel])
@@ -719,6 +721,9 @@ class Trainer(TrainingRun):
             self.predictor.config = replace(self.predictor.config, ties="grid")
         self.nearest = torch.from_numpy(predictor_neighbours(a.positions, mask, self.predictor.config)
                                         ).long().to(self.device)
+        # the residual predictor's proxy -> leaf encodings, once: positions and neighbours stay fixed from here on
+        self.encodings = (proxy_encodings(a.positions, self.nearest, self.predictor.config)
+                          if isinstance(self.predictor.config, PredictorConfig) else None)
         self.leaves = (~self.proxy_mask).nonzero().squeeze(1)
         self.predictor.to(self.device)
         for k, p in self.predictor.named_parameters():

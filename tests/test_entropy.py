@@ -471,3 +471,75 @@ def test_auto_keeps_zstd_where_the_nets_do_not_pay(both, tmp_path, monkeypatch):
         assert fmt == 4 and "against zstd's" in log[0] and "zstd kept" not in log[0], log
     else:
         assert fmt == 2 and "zstd kept" in log[0], log
+
+
+def _bits_pass_by_pass(rate: RateModel, y_f, y_s, y_o, P_rows, L_rows, wp, wl):
+    """The reference of ``RateModel.symbol_bits``: one net call per coding pass (each feature group; proxies, then
+    leaves), as the decoder makes the passes, and each pass's bits summed on its own."""
+
+    def clip(v):
+        return v.detach().clamp(-entropy.ACT_MAX, entropy.ACT_MAX)
+
+    F = y_f.shape[1]
+    G = -(-F // entropy.FEATURE_GROUP)
+    total = 0.0
+    yp = y_f[P_rows]
+    for g in range(G):
+        c0, c1 = g * entropy.FEATURE_GROUP, min(F, (g + 1) * entropy.FEATURE_GROUP)
+        known = torch.zeros_like(yp)
+        known[:, :c0] = clip(yp[:, :c0])
+        onehot = yp.new_zeros(len(P_rows), G)
+        onehot[:, g] = 64
+        mu, lvl = rate.nets["features"](torch.cat([rate.posn[P_rows], known, onehot], 1))
+        total = total + wp * laplace_bits(yp[:, c0:c1], mu[:, :c1 - c0], lvl[:, :c1 - c0]).sum()
+    for rows, leaf, w in ((P_rows, False, wp), (L_rows, True, wl)):
+        if not len(rows):
+            continue
+        src = rate.near[rows] if leaf else rows
+        head = [clip(y_f)[src], rate.posn[rows], y_s.new_full((len(rows), 1), float(entropy.FLAG if leaf else 0)),
+                rate.rel[rows]]
+        ref_s = y_s[src].detach() if leaf else y_s.new_zeros(len(rows), y_s.shape[1])
+        mu, lvl = rate.nets["scalings"](torch.cat(head + [clip(ref_s)], 1), ref_s)
+        total = total + w * laplace_bits(y_s[rows], mu, lvl).sum()
+        ref_o = y_o[src].detach() if leaf else y_o.new_zeros(len(rows), y_o.shape[1])
+        mu, lvl = rate.nets["offsets"](torch.cat(head + [clip(y_s[rows]), clip(ref_o)], 1), ref_o)
+        total = total + w * laplace_bits(y_o[rows], mu, lvl).sum()
+    return total
+
+
+@pytest.mark.parametrize("F", [32, 12])  # 12: a short last feature group (8 + 4)
+def test_rate_bits_in_one_call_per_net_match_the_pass_by_pass_reference(F):
+    """``symbol_bits`` stacks every pass of a net into one call: bits and gradients (symbols, nets, gains) are the
+    reference's, in float64 so that only the order of the sums can differ."""
+    rng = np.random.default_rng(11)
+    M, K = 150, 10
+    pos = np.unique(rng.integers(-30, 30, (M, 3)), axis=0).astype(np.float32) * np.float32(0.05)
+    M = len(pos)
+    mask = np.zeros(M, bool)
+    mask[::3] = True
+    f = torch.tensor(rng.normal(size=(M, F)), dtype=torch.float32)
+    o = torch.tensor(rng.normal(size=(M, K, 3)) * 0.3, dtype=torch.float32)
+    s = torch.tensor(rng.normal(size=(M, 6)) * 0.1 - 3, dtype=torch.float32)
+    rate = RateModel(pos, 0.05, mask, f, o, s).double()
+    with torch.no_grad():  # nets away from their start (zero gains, a uniform level) so that every input matters
+        for p in rate.nets.parameters():
+            p.add_(torch.from_numpy(rng.normal(size=tuple(p.shape)) * 0.1))
+    ys = [torch.tensor(rng.normal(size=(M, c)) * 20, dtype=torch.float64, requires_grad=True) for c in (F, 6, 3 * K)]
+    P_rows = torch.from_numpy(np.flatnonzero(mask)[::2].copy())
+    L_rows = torch.from_numpy(np.flatnonzero(~mask)[1::2].copy())
+    params = [p for p in rate.nets.parameters() if p.requires_grad]
+    results = []
+    for fn in (rate.symbol_bits, lambda *a: _bits_pass_by_pass(rate, *a)):
+        bits = fn(*ys, P_rows, L_rows, 3.0, 2.5)
+        grads = torch.autograd.grad(bits, ys + params)
+        results.append((bits, grads))
+    (b1, g1), (b2, g2) = results
+    assert float(b1.detach()) == pytest.approx(float(b2.detach()), rel=1e-12) and float(b1.detach()) > 0
+    for a, b in zip(g1, g2):
+        assert torch.allclose(a, b, rtol=1e-9, atol=1e-12)
+    assert g1[0].abs().sum() > 0 and g1[1].abs().sum() > 0 and g1[2].abs().sum() > 0
+    # no leaves (a scene of proxies only): the proxies' passes alone
+    none = torch.zeros(0, dtype=torch.int64)
+    with torch.no_grad():
+        assert float(rate.symbol_bits(*ys, P_rows, none)) == pytest.approx(
+            float(_bits_pass_by_pass(rate, *ys, P_rows, none, 1.0, 1.0)), rel=1e-12)

@@ -340,6 +340,34 @@ class TestPredictor:
         assert PredictorConfig.from_json({k: v for k, v in PredictorConfig().to_json().items()
                                           if k != "context"}).context == 1  # older files
 
+    def test_kept_encodings_predict_as_the_computed_ones(self):
+        """Stage 2 keeps every anchor's proxy -> leaf encodings (``proxy_encodings``) and takes rows from them: the
+        predictions and the features' gradients are those of encodings computed per call, for any leaf subset."""
+        from proxycodec.proxy import nearest_proxies, proxy_encodings
+
+        pos, feats = smooth_scene(300, seed=2)
+        mask = select_proxies(pos, 0.15, 0.3, 0)
+        near = torch.from_numpy(nearest_proxies(pos, mask, 3))
+        torch.manual_seed(0)
+        pred = ResidualPredictor(PredictorConfig(hidden=16, dist_ref=0.05, context=3))
+        with torch.no_grad():
+            pred.head.weight.normal_(0, 0.3)  # away from the proxy-copy start, so the geometry matters
+        pos_t = torch.as_tensor(pos)
+        enc = proxy_encodings(pos_t, near, pred.config)
+        assert enc.shape == (len(pos), 3, pred.config.n_geo) and not enc.requires_grad
+        leaves = torch.from_numpy(np.flatnonzero(~mask)[::3].copy())
+        outs = []
+        for e in (None, enc):
+            f = feats.clone().requires_grad_(True)
+            p, _ = pred.predict(pos_t, f, near, leaves, encodings=e)
+            (g,) = torch.autograd.grad((p ** 2).sum(), f)
+            outs.append((p.detach(), g))
+        assert torch.allclose(outs[0][0], outs[1][0], rtol=1e-6, atol=1e-6)
+        assert torch.allclose(outs[0][1], outs[1][1], rtol=1e-5, atol=1e-5) and outs[0][1].abs().sum() > 0
+        assert not torch.allclose(outs[0][0], feats[near[leaves, 0]], atol=1e-3)  # not the copy baseline
+        # a row's encoding is its own, whichever rows are asked for
+        assert torch.allclose(proxy_encodings(pos_t, near, pred.config, leaves), enc[leaves], rtol=1e-6, atol=1e-7)
+
     def test_offsets_prediction_shapes_and_training(self):
         pos, feats = smooth_scene(200)
         offs = torch.randn(200, 10, 3) * 0.1
