@@ -846,3 +846,30 @@ def test_a_training_step_synchronises_three_times(data):
             per_stage.setdefault(stage, [n for n in c.names if n in syncing])
     assert tr.rate is not None
     assert per_stage == {1: ["nonzero"] * 3, 2: ["nonzero"] * 3}, per_stage
+
+
+def test_a_stage2_step_runs_each_rate_net_once_and_encodes_no_proxy_vector(data, monkeypatch):
+    """The launches a stage-2 step saves stay saved: the rate term calls each of its three nets once (its passes
+    stacked), and the predictor takes its proxy -> leaf encodings from the table made at the stage switch."""
+    from proxycodec import entropy_fit, proxy
+    from proxycodec.train import Trainer
+
+    tr = Trainer(data, small_config(iters=20, lambda_rate=1e-4, update_interval=1000, predictor_context=2), "tiny")
+    while tr.stage < 2:
+        tr.train_step()
+    assert tr.encodings is not None and tr.encodings.shape[1:] == (2, tr.predictor.config.n_geo)
+    calls = {"nets": 0, "encodings": 0}
+    net_forward, inputs = entropy_fit.FloatNet.forward, proxy.predictor_inputs
+
+    def count_net(self, *a, **k):
+        calls["nets"] += 1
+        return net_forward(self, *a, **k)
+
+    def count_inputs(*a, **k):
+        calls["encodings"] += 1
+        return inputs(*a, **k)
+
+    monkeypatch.setattr(entropy_fit.FloatNet, "forward", count_net)
+    monkeypatch.setattr(proxy, "predictor_inputs", count_inputs)
+    tr.train_step()
+    assert calls == {"nets": 3, "encodings": 0}, calls
