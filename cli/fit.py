@@ -125,6 +125,10 @@ _no_undistort_option = click.option(
                  "1) [default: as large as at Scaffold-GS's spacing density: 1 there, below 1 at a coarser voxel].")
 @fit_option("--max-anchors", type=click.IntRange(min=1),
             help="Stop growing anchors at this many [default: no cap; the scene decides, as in Scaffold-GS].")
+@fit_option("--target-size", type=click.IntRange(min=1),
+            help="Aim the encoded container at no more than about this many bytes: an anchor cap from a measured "
+                 "bytes-per-anchor model (with --max-anchors, the smaller), and a voxel coarse enough to start "
+                 "under 80% of it.")
 @click.option("--init-points", type=int, default=None,
               help="Random initial points when the dataset has no SfM points (Blender) "
                    "[default: 5000; 10000 with --explicit].")
@@ -151,7 +155,7 @@ def fit(dataset, out, iters, time_budget, max_width, seed, no_gate, embedding, f
         stage2_start,
         recon_loss, lambda_recon, predictor_kind,
         gate_kappa, gate_eta, antialiased, voxel_size, voxel_rule, color_init_steps, init_gaussian_scale, max_anchors,
-        init_points, images, test_every, no_undistort, resume, checkpoint_every,
+        target_size, init_points, images, test_every, no_undistort, resume, checkpoint_every,
         keep_checkpoint, backend, explicit, sh_degree, max_gaussians) -> None:
     """Train an anchor scene on DATASET's photos (a Blender/NeRF-Synthetic or COLMAP folder, detected by its files).
 
@@ -182,7 +186,8 @@ def fit(dataset, out, iters, time_budget, max_width, seed, no_gate, embedding, f
     cfg = FitConfig(seed=seed, max_width=max_width, gate=not no_gate, embedding=embedding, fixed_res=fixed_res,
                     proxies=not no_proxies, voxel_size=voxel_size, voxel_rule=voxel_rule,
                     color_init_steps=color_init_steps, init_gaussian_scale=init_gaussian_scale,
-                    max_anchors=max_anchors, checkpoint_every=checkpoint_every, backend=backend,
+                    max_anchors=max_anchors, target_size=target_size, checkpoint_every=checkpoint_every,
+                    backend=backend,
                     recon_loss=recon_loss, lambda_recon_fixed=lambda_recon_fixed, predictor=predictor_kind,
                     gate_kappa=gate_kappa, gate_eta=gate_eta, antialiased=antialiased, proxy_ratio=proxy_ratio,
                     proxy_selection=proxy_selection,

@@ -41,7 +41,7 @@ from .formats.images import check_background
 from .loop import ProgressFn
 from .model import SceneModel
 from .scene import AnchorScene
-from .train import FitConfig
+from .train import FitConfig, anchors_for_bytes
 
 __all__ = ["ConvertConfig", "ConvertResult", "VoxelChoice", "anchors_from_gaussians", "auto_views",
            "choose_voxel", "convert", "fit_attributes", "initial_model", "load_gaussians"]
@@ -273,7 +273,7 @@ CONTAINER_ANCHOR_BYTES = 31.0
 
 def anchors_for_size(target_bytes: int) -> int:
     """The anchors a converted container of ``target_bytes`` holds, by the linear model above."""
-    return max(1, int((target_bytes - CONTAINER_BASE_BYTES) / CONTAINER_ANCHOR_BYTES))
+    return anchors_for_bytes(target_bytes, CONTAINER_BASE_BYTES, CONTAINER_ANCHOR_BYTES)
 
 
 def _cells(means: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:

@@ -77,6 +77,20 @@ VOXEL_RULES = ("auto", "extent", "spacing")
 DENSITY_PROBE_STEPS = 10  # "auto" under a time budget: steps at the spacing density (the pace: all but the first)
 
 
+#: A fitted container's bytes ~ FIT_BASE_BYTES + FIT_ANCHOR_BYTES x anchors (``FitConfig.target_size``): the weights,
+#: predictor, entropy nets and metadata (~55 KB at the default q7 weights), and per anchor a little above the most
+#: measured with the default encode, so that a container lands under its target: bonsai 14.2 B (an H200 fit of 4,176
+#: iterations at extent / 128), 13.1 B (3,794 at the scene's density), 10.0-11.8 B (600-s CPU fits, ~2,000
+#: iterations); lego 8.9 B (1,500 iterations at 200 px). Longer fits have stored more per anchor.
+FIT_BASE_BYTES = 57_000
+FIT_ANCHOR_BYTES = 15.0
+
+
+def anchors_for_bytes(target_bytes: int, base_bytes: float, anchor_bytes: float) -> int:
+    """The anchors a container of ``target_bytes`` holds when it takes ``base_bytes`` + ``anchor_bytes`` per anchor."""
+    return max(1, int((target_bytes - base_bytes) / anchor_bytes))
+
+
 @dataclass(frozen=True)
 class FitConfig:
     """Everything that determines a training run. Fractions are of the whole run (iterations or time budget)."""
@@ -168,6 +182,10 @@ class FitConfig:
     update_init_factor: int = 16
     update_hierarchy_factor: int = 4
     max_anchors: int | None = None  # growth stops at this many anchors (None: no cap, as Scaffold-GS; fit --max-anchors)
+    # a budget in container bytes (fit --target-size): the anchors such a container holds (``anchors_for_bytes`` with
+    # FIT_BASE_BYTES, FIT_ANCHOR_BYTES) become ``max_anchors`` (the smaller of the two), and a voxel rule that would
+    # start above 80% of them starts at the finest coarser voxel that does not (``initial_anchors``)
+    target_size: int | None = None
     # stage 2
     stage2_start: float = 0.5  # also ends anchor growing unless update_until is given
     recon_switch: float = 2.0 / 3.0  # the paper's 20k of 30k
@@ -251,6 +269,12 @@ class FitConfig:
             raise ProxycodecError(f"learning-rate warm-up must be a fraction of the run in [0, 1), got {self.lr_warmup}")
         if self.max_anchors is not None and self.max_anchors < 1:
             raise ProxycodecError(f"the anchor cap must be >= 1, got {self.max_anchors}")
+        if self.target_size is not None:
+            if self.target_size < FIT_BASE_BYTES + FIT_ANCHOR_BYTES:
+                raise ProxycodecError(f"a target size below {FIT_BASE_BYTES + FIT_ANCHOR_BYTES:,.0f} B holds no "
+                                      f"anchor (the weights alone take ~{FIT_BASE_BYTES:,} B)")
+            cap = anchors_for_bytes(self.target_size, FIT_BASE_BYTES, FIT_ANCHOR_BYTES)
+            object.__setattr__(self, "max_anchors", cap if self.max_anchors is None else min(self.max_anchors, cap))
         if self.voxel_rule not in VOXEL_RULES:
             raise ProxycodecError(f"voxel rule {self.voxel_rule!r}: must be one of {', '.join(VOXEL_RULES)}")
         if self.density_iters < 1:
@@ -460,13 +484,33 @@ class InitialAnchors:
         return out
 
 
+def budget_voxel(points: np.ndarray, voxel: float, budget: int) -> float:
+    """The finest voxel, ``voxel`` x 2^(k / 8) for k >= 0, that voxelises ``points`` into at most ``budget`` cells
+    (``voxel`` itself when it does)."""
+    count = functools.cache(lambda k: len(voxelise(points, voxel * 2.0 ** (k / 8))))
+    if count(0) <= budget:
+        return voxel
+    hi = 8
+    while count(hi) > budget and hi < 8 * 64:  # a single cell is 1 anchor: this ends for any budget >= 1
+        hi *= 2
+    lo = hi // 2 if hi > 8 else 0  # count(lo) > budget >= count(hi)
+    while hi - lo > 1:
+        mid = (lo + hi) // 2
+        lo, hi = (mid, hi) if count(mid) > budget else (lo, mid)
+    return voxel * 2.0 ** (hi / 8)
+
+
 def initial_anchors(data, cfg: FitConfig, rng: np.random.Generator) -> InitialAnchors:
-    """The anchors of a new fit from the dataset's points (``initial_points``) voxelised. With ``cfg.max_anchors``, a
-    larger voxelised set is subsampled to it (at random, seeded)."""
+    """The anchors of a new fit from the dataset's points (``initial_points``) voxelised. With ``cfg.target_size``
+    (and no ``cfg.voxel_size``) the voxel coarsens until they are at most 80% of ``cfg.max_anchors``
+    (``budget_voxel``), leaving the rest to growth. With ``cfg.max_anchors``, a larger voxelised set is subsampled to
+    it (at random, seeded)."""
     pts, colors, bounds, extent = initial_points(data, cfg.init_points, rng, "anchors")
     # a k-d tree over every point: built at most once, for the voxel rule and the Gaussians' scale
     spacing = functools.cache(lambda: point_spacing(pts) if has_sfm_points(data) else 0.0)
     voxel = initial_voxel(extent, cfg, spacing)
+    if cfg.target_size is not None and cfg.voxel_size <= 0:
+        voxel = budget_voxel(pts, voxel, max(1, int(0.8 * cfg.max_anchors)))
     anchors = voxelise(pts, voxel)
     if cfg.max_anchors is not None and len(anchors) > cfg.max_anchors:
         anchors = anchors[np.sort(rng.choice(len(anchors), cfg.max_anchors, replace=False))]
@@ -875,7 +919,7 @@ class Trainer(TrainingRun):
             if cfg.voxel_rule == "auto":  # the rule "auto" chose when the run started
                 cfg = replace(cfg, voxel_rule=saved.voxel_rule)
             # Run length may change on resume; everything else must match.
-            ignore = {"iters", "time_budget", "checkpoint_every", "log_every", "backend", "max_anchors"}
+            ignore = {"iters", "time_budget", "checkpoint_every", "log_every", "backend", "max_anchors", "target_size"}
             diff = [f.name for f in fields(FitConfig) if f.name not in ignore
                     and getattr(saved, f.name) != getattr(cfg, f.name)]
             if diff:

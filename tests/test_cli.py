@@ -92,6 +92,8 @@ def test_fit_rejects_a_bad_predictor_shape_before_training(tmp_path):
     (tmp_path / "d").mkdir()
     r = CliRunner().invoke(cli, ["fit", str(tmp_path / "d"), "--predictor-hidden", "0", "-o", str(tmp_path / "s.ply")])
     assert r.exit_code == 2 and "predictor hidden = 0 is out of range" in r.output and "Traceback" not in r.output
+    r = CliRunner().invoke(cli, ["fit", str(tmp_path / "d"), "--target-size", "1000", "-o", str(tmp_path / "s.ply")])
+    assert r.exit_code == 2 and "holds no anchor" in r.output and "Traceback" not in r.output
 
 
 def test_threads_option_reaches_torch_when_it_loads(tmp_path):

@@ -544,6 +544,44 @@ class TestFit:
         with pytest.raises(ProxycodecError, match="anchor cap"):
             FitConfig(max_anchors=0)
 
+    def test_a_target_size_caps_the_anchors_and_coarsens_the_starting_voxel(self):
+        """``fit --target-size``: the bytes become an anchor cap by the measured model (the smaller of it and
+        ``max_anchors``), the voxel coarsens to the finest 2^(k/8) step that starts under 80% of the cap, a given
+        voxel size is kept (and subsampled as ``max_anchors`` does), and a budget too small for one anchor is a one-line
+        error. The setting survives the configuration's JSON."""
+        from types import SimpleNamespace
+
+        from proxycodec.errors import ProxycodecError
+        from proxycodec.train import (
+            FIT_ANCHOR_BYTES, FIT_BASE_BYTES, FitConfig, anchors_for_bytes, budget_voxel, initial_anchors, voxelise,
+        )
+
+        cap = anchors_for_bytes(200_000, FIT_BASE_BYTES, FIT_ANCHOR_BYTES)
+        assert cap == int((200_000 - FIT_BASE_BYTES) / FIT_ANCHOR_BYTES) > 0
+        assert FitConfig(target_size=200_000).max_anchors == cap
+        assert FitConfig(target_size=200_000, max_anchors=cap - 5).max_anchors == cap - 5
+        assert FitConfig(target_size=200_000, max_anchors=cap + 5).max_anchors == cap
+        cfg = FitConfig(target_size=200_000, voxel_rule="spacing")
+        assert FitConfig.from_json(cfg.to_json()) == cfg
+        with pytest.raises(ProxycodecError, match="holds no anchor") as e:
+            FitConfig(target_size=FIT_BASE_BYTES)
+        assert "\n" not in str(e.value)
+        rng = np.random.default_rng(0)
+        pts = rng.uniform(0, 1, (4000, 3))
+        for budget in (1, 37, 500, 10**6):
+            v = budget_voxel(pts, 0.01, budget)
+            assert len(voxelise(pts, v)) <= budget
+            assert v == 0.01 or len(voxelise(pts, v / 2 ** (1 / 8))) > budget  # the finest step that fits
+        # a target whose cap is 100 anchors: 80 at most to start (the rest is growth's), on a coarser voxel
+        target = int(FIT_BASE_BYTES + 100.5 * FIT_ANCHOR_BYTES)
+        sfm = SimpleNamespace(points=pts, point_colors=None, bounds=np.array([[0.0] * 3, [1.0] * 3]))
+        free = initial_anchors(sfm, FitConfig(voxel_rule="extent"), np.random.default_rng(0))
+        ia = initial_anchors(sfm, FitConfig(voxel_rule="extent", target_size=target), np.random.default_rng(0))
+        assert len(free.positions) > 100 and 0 < len(ia.positions) <= 80 and ia.voxel > free.voxel
+        assert len(voxelise(pts, ia.voxel / 2 ** (1 / 8))) > 80
+        given = initial_anchors(sfm, FitConfig(voxel_size=free.voxel, target_size=target), np.random.default_rng(0))
+        assert given.voxel == free.voxel and len(given.positions) == 100
+
     def test_initial_voxel_rules(self):
         from types import SimpleNamespace
 
