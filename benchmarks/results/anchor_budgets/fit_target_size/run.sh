@@ -1,5 +1,5 @@
 #!/bin/bash
-# fit --target-size, measured (AMD EPYC, 2 cores, each run alone): lego at 200 px, 1500 iterations, 80,000 B; bonsai at
+# fit --target-size, measured (Intel Xeon, 2 cores, each run alone): lego at 200 px, 1500 iterations, 80,000 B; bonsai at
 # 800 px, 600 s, 250,000 B. Each: fit, encode with the defaults, eval at 10%..100% on the held-out views.
 set -e
 DATA=$(cd "$(dirname "$0")/../../../../../shared/data" && pwd)
