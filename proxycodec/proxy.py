@@ -238,6 +238,14 @@ def _context_columns(near: torch.Tensor, cfg: PredictorConfig) -> torch.Tensor:
     return near
 
 
+def _encode_from_proxies(positions: torch.Tensor, k: torch.Tensor, p: torch.Tensor, cfg: PredictorConfig
+                         ) -> list[torch.Tensor]:
+    """Per proxy j < ``cfg.context`` (``k`` [R, >= context], nearest first): ``predictor_inputs`` of the vector from
+    ``positions[k[:, j]]`` to ``p`` [R, 3]."""
+    return [predictor_inputs(p, positions[k[:, j]], cfg.dist_ref, cfg.pe_dist_freqs, cfg.pe_dir_freqs)
+            for j in range(cfg.context)]
+
+
 def proxy_encodings(positions: torch.Tensor, near: torch.Tensor, cfg: PredictorConfig,
                     rows: torch.Tensor | None = None) -> torch.Tensor:
     """[R, context, n_geo], without gradient: for the anchors ``rows`` (default all), the encoding of the vector from
@@ -248,8 +256,7 @@ def proxy_encodings(positions: torch.Tensor, near: torch.Tensor, cfg: PredictorC
     with torch.no_grad():
         k = near if rows is None else near[rows]
         p = positions if rows is None else positions[rows]
-        return torch.stack([predictor_inputs(p, positions[k[:, j]], cfg.dist_ref, cfg.pe_dist_freqs,
-                                             cfg.pe_dir_freqs) for j in range(cfg.context)], 1)
+        return torch.stack(_encode_from_proxies(positions, k, p, cfg), 1)
 
 
 def predictor_geometry(positions: torch.Tensor, features: torch.Tensor, near: torch.Tensor, leaves: torch.Tensor,
@@ -260,12 +267,8 @@ def predictor_geometry(positions: torch.Tensor, features: torch.Tensor, near: to
     ``proxy_encodings`` of every anchor, when the caller holds it (rows taken from it; else computed)."""
     near = _context_columns(near, cfg)
     k = near[leaves]
-    if encodings is None:
-        pl = positions[leaves]
-        enc = [predictor_inputs(pl, positions[k[:, j]], cfg.dist_ref, cfg.pe_dist_freqs, cfg.pe_dir_freqs)
-               for j in range(cfg.context)]
-    else:
-        enc = encodings[leaves].unbind(1)
+    enc = (_encode_from_proxies(positions, k, positions[leaves], cfg) if encodings is None
+           else encodings[leaves].unbind(1))
     parts = [enc[0]]
     f0 = gather_rows(features, k[:, 0]) if cfg.context > 1 else None
     for j in range(1, cfg.context):
