@@ -41,7 +41,7 @@ from .formats.images import check_background
 from .loop import ProgressFn
 from .model import SceneModel
 from .scene import AnchorScene
-from .train import FitConfig, anchors_for_bytes
+from .train import FitConfig, anchors_for_bytes, first_true
 
 __all__ = ["ConvertConfig", "ConvertResult", "VoxelChoice", "anchors_from_gaussians", "auto_views",
            "choose_voxel", "convert", "fit_attributes", "initial_model", "load_gaussians"]
@@ -333,20 +333,10 @@ def choose_voxel(g: Gaussians, K: int, cfg: ConvertConfig) -> VoxelChoice:
             cache[i] = VoxelChoice(v, *_kept(g.means, w, v, K), True)
         return cache[i]
 
-    def first(pred, lo: int, hi: int) -> int:
-        """The smallest i in [lo, hi] with pred(at(i)), assuming pred is monotone (False ... True); hi if none."""
-        while lo < hi:
-            mid = (lo + hi) // 2
-            if pred(at(mid)):
-                hi = mid
-            else:
-                lo = mid + 1
-        return lo
-
-    i = first(lambda c: c.kept_weight >= cfg.keep, 0, VOXEL_STEPS)
+    i = first_true(lambda k: at(k).kept_weight >= cfg.keep, 0, VOXEL_STEPS)
     budget = cfg.anchor_budget()
     if budget is not None and at(i).anchors > budget:
-        j = first(lambda c: c.anchors > budget, 0, i) - 1  # the finest voxel within the budget
+        j = first_true(lambda k: at(k).anchors > budget, 0, i) - 1  # the finest voxel within the budget
         i = max(j, 0)
     return at(i)
 

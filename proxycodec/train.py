@@ -484,20 +484,22 @@ class InitialAnchors:
         return out
 
 
-def budget_voxel(points: np.ndarray, voxel: float, budget: int) -> float:
-    """The finest voxel, ``voxel`` x 2^(k / 8) for k >= 0, that voxelises ``points`` into at most ``budget`` cells
-    (``voxel`` itself when it does)."""
-    count = functools.cache(lambda k: len(voxelise(points, voxel * 2.0 ** (k / 8))))
-    if count(0) <= budget:
-        return voxel
-    hi = 8
-    while count(hi) > budget and hi < 8 * 64:  # a single cell is 1 anchor: this ends for any budget >= 1
-        hi *= 2
-    lo = hi // 2 if hi > 8 else 0  # count(lo) > budget >= count(hi)
-    while hi - lo > 1:
+def first_true(pred: Callable[[int], bool], lo: int, hi: int) -> int:
+    """The smallest i in [lo, hi] with ``pred(i)`` for a ``pred`` monotone in i (False ... True); hi if none does.
+    Bisection: ~log2(hi - lo) calls."""
+    while lo < hi:
         mid = (lo + hi) // 2
-        lo, hi = (mid, hi) if count(mid) > budget else (lo, mid)
-    return voxel * 2.0 ** (hi / 8)
+        if pred(mid):
+            hi = mid
+        else:
+            lo = mid + 1
+    return lo
+
+
+def budget_voxel(points: np.ndarray, voxel: float, budget: int) -> float:
+    """The finest voxel, ``voxel`` x 2^(k / 8) for 0 <= k <= 512, that voxelises ``points`` into at most ``budget``
+    cells (``voxel`` itself when it does; 2^64 x ``voxel``, a cell for every point's box, is the coarsest tried)."""
+    return voxel * 2.0 ** (first_true(lambda k: len(voxelise(points, voxel * 2.0 ** (k / 8))) <= budget, 0, 512) / 8)
 
 
 def initial_anchors(data, cfg: FitConfig, rng: np.random.Generator) -> InitialAnchors:
@@ -1038,8 +1040,9 @@ def fit(data, out_ply: str | os.PathLike, config: FitConfig = FitConfig(), *, da
         rule = density_rule(config, expected)
         info = {"rule": "auto", "chose": rule, "switch": config.density_iters, "expected_iterations":
                 round(expected), "probe_steps": DENSITY_PROBE_STEPS, "probe_seconds": round(tr.elapsed, 3)}
-        log(f"density auto: {DENSITY_PROBE_STEPS} steps at the spacing density ({tr.anchors.num_anchors} anchors), "
-            f"{pace:.3g} s each after the first; the budget buys ~{expected:.0f} iterations, "
+        within = "" if config.target_size is None else f"; voxel {tr.anchors.voxel_size:.4g}, within the target size"
+        log(f"density auto: {DENSITY_PROBE_STEPS} steps at the spacing density ({tr.anchors.num_anchors} anchors"
+            f"{within}), {pace:.3g} s each after the first; the budget buys ~{expected:.0f} iterations, "
             f"{'>=' if rule == 'spacing' else '<'} {config.density_iters}: {rule}")
         if rule != "spacing":  # start afresh at the extent density; the probe's seconds stay spent
             spent = tr.elapsed

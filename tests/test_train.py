@@ -730,7 +730,7 @@ def test_auto_density_follows_the_run_length(data, tmp_path):
     from dataclasses import replace
 
     from proxycodec.model import SceneModel
-    from proxycodec.train import DENSITY_PROBE_STEPS, fit
+    from proxycodec.train import DENSITY_PROBE_STEPS, FIT_ANCHOR_BYTES, FIT_BASE_BYTES, fit
 
     lo, hi = data.bounds
     extent = float(np.max(hi - lo))
@@ -760,6 +760,14 @@ def test_auto_density_follows_the_run_length(data, tmp_path):
     assert res.model.scene.voxel_size == spacing and dens["chose"] == "spacing"
     assert res.history[0]["it"] == 1 and res.iterations > DENSITY_PROBE_STEPS
     assert SceneModel.load(tmp_path / "d.ply").scene.voxel_size == spacing
+    # with a target size whose cap (10 anchors) the spacing voxel's 64 exceed: the probe runs on the coarser voxel
+    # the budget gives, and says so
+    target = int(FIT_BASE_BYTES + 10.5 * FIT_ANCHOR_BYTES)
+    res, dens, logs = run("t.ply", iters=None, time_budget=budget, density_iters=1, target_size=target)
+    v = res.model.scene.voxel_size
+    assert v > 1.05 * step and dens["chose"] == "spacing"
+    line = next(s for s in logs if "steps at the spacing density" in s)
+    assert f"voxel {v:.4g}, within the target size" in line
     # resumed with "auto": the checkpoint's choice stands, and the run ends where an uninterrupted one does
     cfg = small_config(iters=24)
     with pytest.raises(KeyboardInterrupt):
