@@ -211,6 +211,9 @@ class FitConfig:
     # [D] the decoder MLPs' learning-rate schedules restart at the stage switch too (their init -> final over
     # stage 2): they must re-fit to predicted leaf features (+0.11 dB on lego at 200 px)
     decoder_lr_stage2: bool = True
+    # the leaves' rendered features pass from their own (stage-1) values to the predicted ones linearly over this
+    # fraction of stage 2 (0: at once, the paper's switch); from then on the predictions alone, as decoded
+    leaf_ramp: float = 0.0
     predict_offsets: bool = False  # stage 2 also predicts (and renders) the leaves' offsets; L_recon adds their MSE
     # Rate in the loss (stage 2; ``entropy_fit.RateModel``): lambda_rate x estimated bits per anchor of the stored
     # attributes; they are rendered rounded to a learned grid per attribute channel (straight-through), exported in
@@ -284,6 +287,8 @@ class FitConfig:
                                   f"{self.init_gaussian_scale}")
         if self.color_init_steps < 0:
             raise ProxycodecError(f"colour init steps must be >= 0, got {self.color_init_steps}")
+        if not (0.0 <= self.leaf_ramp < 1.0):
+            raise ProxycodecError(f"the leaves' ramp must be a fraction of stage 2 in [0, 1), got {self.leaf_ramp}")
         if self.predictor_warmup < 0:
             raise ProxycodecError(f"predictor warm-up must be >= 0 iterations, got {self.predictor_warmup}")
         if self.recon_loss not in RECON_LOSSES:
@@ -630,7 +635,7 @@ class Trainer(TrainingRun):
                                  "scalings": c.lr_scaling}
         groups = {"mlp_opacity": c.lr_mlp_opacity, "mlp_cov": c.lr_mlp_cov, "mlp_color": c.lr_mlp_color,
                   "mlp_embed": c.lr_mlp_embed, "mlp_feature_bank": c.lr_mlp_feature_bank}
-        p2 = min(1.0, max(0.0, (p - c.stage2_start) / (1.0 - c.stage2_start))) if c.stage2_start < 1 else 1.0
+        p2 = self.stage2_progress(p)
         for name in self.opt.params:
             if name.startswith("decoder."):
                 q = p2 if (c.decoder_lr_stage2 and self.stage >= 2) else p
@@ -651,6 +656,17 @@ class Trainer(TrainingRun):
             ramp = p / c.lr_warmup
             lrs = {k: v * ramp for k, v in lrs.items()}
         return lrs
+
+    def stage2_progress(self, p: float) -> float:
+        """Where the run ``p`` stands within stage 2, in [0, 1] (1 when the run has no stage 2)."""
+        c = self.cfg
+        return min(1.0, max(0.0, (p - c.stage2_start) / (1.0 - c.stage2_start))) if c.stage2_start < 1 else 1.0
+
+    def leaf_blend(self) -> float:
+        """The predictions' share of the leaves' rendered features (``FitConfig.leaf_ramp``): 0 at the stage switch,
+        1 from ``leaf_ramp`` of stage 2 on."""
+        ramp = self.cfg.leaf_ramp
+        return 1.0 if ramp <= 0 else min(1.0, self.stage2_progress(self.progress()) / ramp)
 
     def lambda_recon(self, p: float) -> float:
         if self.cfg.lambda_recon_fixed is not None:
@@ -717,6 +733,10 @@ class Trainer(TrainingRun):
         if leaf_vis.numel():
             pred, pred_o = self.predictor.predict(a.positions, base_f, self.nearest, leaf_vis,
                                                   base_o if po else None, self.encodings)
+            if (t := self.leaf_blend()) < 1.0:  # the ramp: own values -> predictions
+                pred = torch.lerp(base_f[leaf_vis], pred, t)
+                if po:
+                    pred_o = torch.lerp(base_o[leaf_vis], pred_o, t)
             feats = base_f.index_put((leaf_vis,), pred)
             if po:
                 offs = base_o.index_put((leaf_vis,), pred_o)

@@ -919,3 +919,37 @@ def test_a_stage2_step_runs_each_rate_net_once_and_encodes_no_proxy_vector(data,
     monkeypatch.setattr(proxy, "predictor_inputs", count_inputs)
     tr.train_step()
     assert calls == {"nets": 3, "encodings": 0}, calls
+
+
+def test_the_leaf_ramp_passes_the_leaves_from_their_own_features_to_the_predictions(data):
+    """``leaf_ramp``: the leaves' rendered features start stage 2 as their own values, are the linear blend
+    (1 - t) own + t predicted at t = (stage-2 progress) / ramp, and the predictions alone from the end of the ramp
+    on; without a ramp the predictions at once. Fractions outside [0, 1) are one-line errors."""
+    import torch
+
+    from proxycodec.errors import ProxycodecError
+    from proxycodec.train import FitConfig, Trainer
+
+    for bad in (-0.1, 1.0):
+        with pytest.raises(ProxycodecError, match="ramp"):
+            FitConfig(leaf_ramp=bad)
+    cfg = small_config(iters=40, update_interval=1000, leaf_ramp=0.5)
+    assert FitConfig.from_json(cfg.to_json()) == cfg
+    tr = Trainer(data, cfg, "tiny")
+    while tr.stage < 2:
+        tr.train_step()
+    a = tr.anchors
+    vis = torch.arange(a.num_anchors)
+    leaves = tr.leaves
+    own = a.features.detach()[leaves]
+    pred, _ = tr.predictor.predict(a.positions, a.features, tr.nearest, leaves, None, tr.encodings)
+    for it, t in ((20, 0.0), (25, 0.5), (30, 1.0), (35, 1.0)):  # stage 2 is iterations 20..40; the ramp ends at 30
+        tr.iteration = it
+        assert tr.leaf_blend() == pytest.approx(t)
+        feats, _, _ = tr.leaf_tables(vis, with_recon=False)
+        torch.testing.assert_close(feats[leaves], (1 - t) * own + t * pred.detach(), rtol=0, atol=1e-6)
+        proxies = tr.proxy_mask.nonzero().squeeze(1)
+        assert torch.equal(feats[proxies], a.features.detach()[proxies])
+    tr.cfg = small_config(iters=40, update_interval=1000)  # no ramp: the predictions from the switch on
+    tr.iteration = 20
+    assert tr.leaf_blend() == 1.0
