@@ -39,7 +39,8 @@ DEFAULT_DATA = HERE.parent.parent / "shared" / "data" / "mipnerf360" / "bonsai"
 RES = [0.1, 0.3, 0.6, 1.0]
 SEED = 0
 VARIANTS = {
-    "default": {}, "stage1": {"proxies": False}, "warm3000": {"predictor_warmup": 3000}, "warm0": {"predictor_warmup": 0},
+    "default": {}, "stage1": {"proxies": False}, "warm3000": {"predictor_warmup": 3000},
+    "warm0": {"predictor_warmup": 0},
     "norate": {"lambda_rate": 0.0}, "nolr": {"decoder_lr_stage2": False},
     "ramp20": {"leaf_ramp": 0.2}, "ramp40": {"leaf_ramp": 0.4},
     "ramp40_warm3000": {"leaf_ramp": 0.4, "predictor_warmup": 3000},
