@@ -451,6 +451,11 @@ def fit_initial_colors(decoder: GaussianDecoder, positions: torch.Tensor, featur
     return rmse[0], rmse[-1]
 
 
+def stage2_progress(cfg: FitConfig, p: float) -> float:
+    """Where a run at ``p`` stands within stage 2, in [0, 1] (1 when the run has no stage 2)."""
+    return min(1.0, max(0.0, (p - cfg.stage2_start) / (1.0 - cfg.stage2_start))) if cfg.stage2_start < 1 else 1.0
+
+
 def density_rule(cfg: FitConfig, expected_iters: float | None = None) -> str:
     """The voxel rule ``cfg`` stands for: "auto" resolved by the run's expected length (``expected_iters``, else
     ``cfg.iters``; neither known: spacing, which ``fit`` avoids by measuring the pace first)."""
@@ -635,7 +640,7 @@ class Trainer(TrainingRun):
                                  "scalings": c.lr_scaling}
         groups = {"mlp_opacity": c.lr_mlp_opacity, "mlp_cov": c.lr_mlp_cov, "mlp_color": c.lr_mlp_color,
                   "mlp_embed": c.lr_mlp_embed, "mlp_feature_bank": c.lr_mlp_feature_bank}
-        p2 = self.stage2_progress(p)
+        p2 = stage2_progress(c, p)
         for name in self.opt.params:
             if name.startswith("decoder."):
                 q = p2 if (c.decoder_lr_stage2 and self.stage >= 2) else p
@@ -657,16 +662,11 @@ class Trainer(TrainingRun):
             lrs = {k: v * ramp for k, v in lrs.items()}
         return lrs
 
-    def stage2_progress(self, p: float) -> float:
-        """Where the run ``p`` stands within stage 2, in [0, 1] (1 when the run has no stage 2)."""
-        c = self.cfg
-        return min(1.0, max(0.0, (p - c.stage2_start) / (1.0 - c.stage2_start))) if c.stage2_start < 1 else 1.0
-
     def leaf_blend(self) -> float:
         """The predictions' share of the leaves' rendered features (``FitConfig.leaf_ramp``): 0 at the stage switch,
         1 from ``leaf_ramp`` of stage 2 on."""
         ramp = self.cfg.leaf_ramp
-        return 1.0 if ramp <= 0 else min(1.0, self.stage2_progress(self.progress()) / ramp)
+        return 1.0 if ramp <= 0 else min(1.0, stage2_progress(self.cfg, self.progress()) / ramp)
 
     def lambda_recon(self, p: float) -> float:
         if self.cfg.lambda_recon_fixed is not None:
